@@ -1,0 +1,22 @@
+"""``python -m benchmarks``: run every benchmark module in turn (each has ``main() -> int``)."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# Add new benchmark modules here; they run in this order.
+MODULES = [
+    "benchmarks.bench_bus",
+]
+
+
+def main() -> int:
+    status = 0
+    for name in MODULES:
+        status = max(status, importlib.import_module(name).main([]))
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

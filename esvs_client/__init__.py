@@ -1,0 +1,1 @@
+"""esvs_client package."""

@@ -1,0 +1,160 @@
+"""Sans-IO message codec: typed message <-> signed datagram bytes. No sockets, no clock.
+
+Layout (little-endian; SPEC.md is normative)::
+
+    magic "RB" | version u8 | flags u8 | type_id u16 | source_id u16 | key_id u16 |
+    channel_len u8 | reserved u8 | seq u64 | t_meas_ns i64 | t_pub_ns i64 |
+    channel (channel_len bytes, ASCII) | body (msgpack array) | tag (16 B, if SIGNED)
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from typing import Any, NamedTuple
+
+import msgpack
+
+from protocol.auth import TAG_BYTES, Keyring
+from protocol.errors import ProtocolError, Reason
+from protocol.schema import info_for_class, info_for_id
+
+_new = tuple.__new__
+MAGIC = b"RB"
+VERSION = 1
+FLAG_SIGNED = 0x01
+FLAG_FRAGMENT = 0x02
+HEADER = struct.Struct("<2sBBHHHBBQqq")
+HEADER_BYTES = HEADER.size  # 36
+HEADER_PREFIX = struct.Struct("<2sBBHHHBB")  # magic .. reserved
+HEADER_TIMES = struct.Struct("<Qqq")  # seq, t_meas_ns, t_pub_ns
+MAX_CHANNEL_BYTES = 64
+CHANNEL_PATTERN = re.compile(r"[A-Za-z0-9_./-]{1,64}")
+DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024
+
+
+class Envelope(NamedTuple):
+    """Header of a received message, handed to subscribers beside the typed body."""
+
+    channel: str
+    source_id: int
+    seq: int
+    t_meas_ns: int
+    t_pub_ns: int
+    recv_ns: int
+    type_id: int
+    size: int
+    recv_local_ns: int
+
+
+class Opened(NamedTuple):
+    """An authenticated, not yet body-decoded message."""
+
+    type_id: int
+    source_id: int
+    seq: int
+    t_meas_ns: int
+    t_pub_ns: int
+    channel: str
+    body: memoryview
+
+
+def check_channel(channel: str) -> bytes:
+    """Channel names are 1-64 chars of [A-Za-z0-9_./-]; returns the wire bytes."""
+    if not CHANNEL_PATTERN.fullmatch(channel):
+        raise ValueError(f"invalid channel name {channel!r}: use 1-64 of [A-Za-z0-9_./-]")
+    return channel.encode("ascii")
+
+
+class Codec:
+    """Encodes and authenticates messages for one deployment.
+
+    ``keyring=None`` is the explicit unsigned mode: messages go out unsigned and unsigned ones are
+    accepted. With a keyring, unsigned or wrongly signed messages are rejected.
+    """
+
+    def __init__(self, keyring: Keyring | None, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self.keyring = keyring
+        self.max_message_bytes = max_message_bytes
+        self._packer = msgpack.Packer(use_bin_type=True)
+        self._flags = FLAG_SIGNED if keyring else 0
+        self._key_id = keyring.active if keyring else 0
+        # The first 12 header bytes are fixed per (type, channel, source): packed once.
+        self._prefixes: dict[tuple[type, bytes, int], bytes] = {}
+
+    def encode(self, channel: bytes, msg: Any, source_id: int, seq: int, t_meas_ns: int, t_pub_ns: int) -> bytes:
+        """Serialise ``msg`` (a registered message) into one message; may exceed a datagram."""
+        key = (type(msg), channel, source_id)
+        prefix = self._prefixes.get(key)
+        if prefix is None:
+            type_id = info_for_class(type(msg)).type_id
+            prefix = self._prefixes[key] = HEADER_PREFIX.pack(
+                MAGIC, VERSION, self._flags, type_id, source_id, self._key_id, len(channel), 0
+            )
+        data = b"".join((prefix, HEADER_TIMES.pack(seq, t_meas_ns, t_pub_ns), channel, self._packer.pack(msg)))
+        if self.keyring is not None:
+            data += self.keyring.sign(data)
+        if len(data) > self.max_message_bytes:
+            raise ValueError(f"{type(msg).__name__} is {len(data)} B, over the {self.max_message_bytes} B limit")
+        return data
+
+    def open(self, data: bytes) -> Opened:
+        """Check framing and authenticity of one complete message; raise ProtocolError if bad."""
+        size = len(data)
+        if size < HEADER_BYTES:
+            raise ProtocolError(Reason.TRUNCATED, f"{size} B is shorter than the header")
+        if size > self.max_message_bytes:
+            raise ProtocolError(Reason.OVERSIZED, f"{size} B")
+        (magic, version, flags, type_id, source_id, key_id, channel_len, _reserved, seq, t_meas_ns, t_pub_ns) = (
+            HEADER.unpack_from(data)
+        )
+        if magic != MAGIC:
+            raise ProtocolError(Reason.BAD_MAGIC)
+        if version != VERSION:
+            raise ProtocolError(Reason.BAD_VERSION, f"version {version}", source_id)
+        if flags & ~FLAG_SIGNED:
+            raise ProtocolError(Reason.BAD_HEADER, f"flags {flags:#x}", source_id)
+        body_start = HEADER_BYTES + channel_len
+        view = memoryview(data)
+        if flags & FLAG_SIGNED:
+            body_end = size - TAG_BYTES
+            if body_end < body_start:
+                raise ProtocolError(Reason.TRUNCATED, "no room for the tag", source_id)
+            if self.keyring is not None:
+                if key_id not in self.keyring.keys:
+                    raise ProtocolError(Reason.UNKNOWN_KEY, f"key id {key_id}", source_id)
+                if not self.keyring.verify(key_id, view[:body_end], view[body_end:]):
+                    raise ProtocolError(Reason.BAD_MAC, "", source_id)
+        else:
+            if self.keyring is not None:
+                raise ProtocolError(Reason.UNSIGNED, "", source_id)
+            body_end = size
+        if not 0 < channel_len <= MAX_CHANNEL_BYTES or body_start >= body_end:
+            raise ProtocolError(Reason.BAD_HEADER, f"channel length {channel_len}", source_id)
+        try:
+            channel = data[HEADER_BYTES:body_start].decode("ascii")
+        except UnicodeDecodeError:
+            raise ProtocolError(Reason.BAD_HEADER, "channel is not ASCII", source_id) from None
+        # tuple.__new__ skips the NamedTuple's Python-level __new__: this runs for every datagram.
+        return _new(Opened, (type_id, source_id, seq, t_meas_ns, t_pub_ns, channel, view[body_start:body_end]))
+
+
+def unpack_body(body: bytes | memoryview, source_id: int | None = None) -> Any:
+    """msgpack body -> raw arrays (tuples); ProtocolError if it is not valid msgpack."""
+    try:
+        return msgpack.unpackb(body, use_list=False, raw=False, strict_map_key=True)
+    except (ValueError, msgpack.UnpackException) as exc:
+        # msgpack raises ExtraData/FormatError/StackError (ValueError subclasses) or
+        # UnicodeDecodeError (also a ValueError) for malformed input.
+        raise ProtocolError(Reason.BAD_BODY, f"msgpack: {type(exc).__name__}", source_id) from None
+    except TypeError:
+        raise ProtocolError(Reason.BAD_BODY, "msgpack: unhashable map key", source_id) from None
+
+
+def decode_body(type_id: int, body: bytes | memoryview, source_id: int | None = None) -> Any:
+    """msgpack body -> typed message, validated; ProtocolError on anything malformed."""
+    try:
+        return info_for_id(type_id).decode(unpack_body(body, source_id))
+    except ProtocolError as exc:
+        exc.source_id = source_id
+        raise

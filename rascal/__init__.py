@@ -1,0 +1,1 @@
+"""rascal runtime: the bus, shared time, the module lifecycle and the `rascal` command."""

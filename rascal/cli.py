@@ -1,0 +1,148 @@
+"""The `rascal` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
+from rascal.bustools import make_console
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["module"]:
+        # Everything after the module name belongs to the module's own parser.
+        from rascal.launch import module_class, run_module
+
+        if len(argv) < 2:
+            print("usage: rascal module NAME [--help | module options]", file=sys.stderr)
+            return 2
+        run_module(module_class(argv[1]), argv[2:])
+        return 0
+    args = build_parser().parse_args(argv)
+    return args.handler(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rascal", description="RASCAL-style autonomy stack: bus, modules, tools")
+    parser.add_argument("--bus", help="bus URL (default: $RASCAL_BUS_URL or loopback multicast)")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    commands.add_parser("module", help="run one module process: rascal module NAME [options]")
+
+    demo = commands.add_parser("demo", help="time service + modules on the loopback bus, shown by the bus tools")
+    demo.set_defaults(handler=_demo)
+
+    keygen = commands.add_parser("keygen", help="write a new deployment key file (mode 600)")
+    keygen.add_argument("path", type=Path, nargs="?", default=DEFAULT_KEY_FILE)
+    keygen.add_argument("--force", action="store_true", help="replace an existing file")
+    keygen.set_defaults(handler=_keygen)
+
+    bus = commands.add_parser("bus", help="look at and talk to the live bus").add_subparsers(dest="tool", required=True)
+    listing = bus.add_parser("list", help="channels on the bus with rate, size, loss, latency")
+    listing.add_argument("--duration", type=float, default=3.0, help="seconds to listen")
+    listing.set_defaults(handler=_bus_list)
+    echo = bus.add_parser("echo", help="print messages of a channel as JSON lines")
+    echo.add_argument("channel")
+    echo.add_argument("--count", type=int, help="stop after this many")
+    echo.add_argument("--duration", type=float, default=10.0, help="seconds to listen at most")
+    echo.set_defaults(handler=_bus_echo)
+    hz = bus.add_parser("hz", help="rate, interval jitter, loss and latency of a channel")
+    hz.add_argument("channel")
+    hz.add_argument("--window", type=float, default=1.0, help="seconds per report")
+    hz.add_argument("--duration", type=float, default=5.0, help="seconds to run")
+    hz.set_defaults(handler=_bus_hz)
+    pub = bus.add_parser("pub", help="publish a message given as JSON (object or array)")
+    pub.add_argument("channel")
+    pub.add_argument("json")
+    pub.add_argument("--type", help="message type name, for channels not declared in protocol.channels")
+    pub.add_argument("--rate", type=float, default=10.0, help="messages per second")
+    pub.add_argument("--count", type=int, default=1, help="how many to send")
+    pub.set_defaults(handler=_bus_pub)
+    bridge = bus.add_parser("bridge", help="forward channels over ZeroMQ/TCP (far end: --bus zmq://HOST:PORT)")
+    bridge.add_argument("--bind", default="tcp://127.0.0.1:7700", help="ZeroMQ endpoint to publish on")
+    bridge.add_argument("--channels", default=".*", help="regular expression of channels to forward")
+    bridge.add_argument("--duration", type=float, default=3600.0, help="seconds to run")
+    bridge.set_defaults(handler=_bus_bridge)
+
+    time_ = commands.add_parser("time", help="shared time").add_subparsers(dest="tool", required=True)
+    status = time_.add_parser("status", help="this node's sync to the master and every module's clock state")
+    status.add_argument("--duration", type=float, default=2.0, help="seconds to synchronise and listen")
+    status.set_defaults(handler=_time_status)
+    return parser
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from rascal.demo import run_demo
+
+    return run_demo(args.bus)
+
+
+def _keygen(args: argparse.Namespace) -> int:
+    try:
+        write_keyring(args.path, Keyring.generate(), overwrite=args.force)
+    except FileExistsError:
+        print(f"{args.path} exists; use --force to replace it", file=sys.stderr)
+        return 1
+    print(f"wrote {args.path}")
+    return 0
+
+
+def _bus_list(args: argparse.Namespace) -> int:
+    from rascal.bustools import bus_list
+
+    bus_list(args.bus, args.duration, make_console())
+    return 0
+
+
+def _bus_echo(args: argparse.Namespace) -> int:
+    from rascal.bustools import bus_echo
+
+    bus_echo(args.bus, args.channel, args.duration, args.count, make_console())
+    return 0
+
+
+def _bus_hz(args: argparse.Namespace) -> int:
+    from rascal.bustools import bus_hz
+
+    bus_hz(args.bus, args.channel, args.duration, args.window, make_console())
+    return 0
+
+
+def _bus_pub(args: argparse.Namespace) -> int:
+    from rascal.bustools import bus_pub
+
+    try:
+        sent = bus_pub(args.bus, args.channel, args.json, args.type, args.rate, args.count)
+    except (ValueError, TypeError) as exc:
+        print(f"rascal bus pub: {exc}", file=sys.stderr)
+        return 2
+    print(f"published {sent} on {args.channel}")
+    return 0
+
+
+def _bus_bridge(args: argparse.Namespace) -> int:
+    from rascal.bridge import Bridge
+
+    bridge = Bridge(args.bus, args.bind, args.channels)
+    try:
+        bridge.run(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bridge.close()
+    print(f"forwarded {bridge.forwarded} messages")
+    return 0
+
+
+def _time_status(args: argparse.Namespace) -> int:
+    from rascal.bustools import time_status
+
+    time_status(args.bus, args.duration, make_console())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,128 @@
+"""Typed module configuration: dataclasses with defaults and units, strict loading.
+
+Every module declares a frozen dataclass; each field has a default and a ``help`` metadata
+string. Loading from TOML tables or ``--set key=value`` rejects unknown keys and wrong types by
+name, and ``--print-config`` is generated from the same declaration so it cannot drift.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from typing import Any, TypeVar
+
+C = TypeVar("C")
+
+
+class ConfigError(ValueError):
+    """A configuration value or key that cannot be used; the message names it."""
+
+
+def setting(default: Any, help: str) -> Any:
+    """A config field with its default and a one-line description (units in the field name)."""
+    if isinstance(default, (list, dict, set)):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata={"help": help})
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+def build_config(cls: type[C], values: dict[str, Any], where: str = "config") -> C:
+    """Instantiate ``cls`` from a mapping, checking every key and type."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
+    hints = typing.get_type_hints(cls)
+    checked = {name: _coerce(hints[name], value, f"{where}.{name}") for name, value in values.items()}
+    return cls(**checked)
+
+
+def parse_assignments(cls: type, assignments: list[str], where: str = "--set") -> dict[str, Any]:
+    """``["rate_hz=20", "name=x"]`` -> typed values, parsed by each field's declared type."""
+    hints = typing.get_type_hints(cls)
+    values: dict[str, Any] = {}
+    for assignment in assignments:
+        key, sep, text = assignment.partition("=")
+        if not sep:
+            raise ConfigError(f"{where} {assignment!r}: expected KEY=VALUE")
+        if key not in hints:
+            raise ConfigError(f"{where} {key}: unknown key; known: {sorted(hints)}")
+        values[key] = _parse_text(hints[key], text, f"{where} {key}")
+    return values
+
+
+def describe(cls: type, instance: Any | None = None) -> str:
+    """Human-readable listing of a config class: name, type, value, help (for --print-config)."""
+    hints = typing.get_type_hints(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        value = getattr(instance, f.name) if instance is not None else _default_of(f)
+        rows.append((f.name, _type_name(hints[f.name]), repr(value), f.metadata.get("help", "")))
+    width = [max(len(row[i]) for row in rows) for i in range(3)] if rows else [0, 0, 0]
+    return "\n".join(
+        f"{name:<{width[0]}}  {tname:<{width[1]}}  {value:<{width[2]}}  # {help_text}"
+        for name, tname, value, help_text in rows
+    )
+
+
+def _default_of(f: dataclasses.Field[Any]) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+def _type_name(tp: Any) -> str:
+    if typing.get_origin(tp) is not None:
+        return str(tp).replace("typing.", "")
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(tp)
+        if value is None and type(None) in options:
+            return None
+        tp = next(option for option in options if option is not type(None))
+        origin = typing.get_origin(tp)
+    if tp is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, str, bool):
+        if type(value) is tp:
+            return value
+        raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (item, *_rest) = typing.get_args(tp) or (Any,)
+        coerced = [value_ if item is Any else _coerce(item, value_, f"{where}[{i}]") for i, value_ in enumerate(value)]
+        return tuple(coerced) if origin is tuple else coerced
+    if tp is float:
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    return value
+
+
+def _parse_text(tp: Any, text: str, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        if text.lower() in ("none", "null", ""):
+            return None
+        tp = next(option for option in typing.get_args(tp) if option is not type(None))
+    try:
+        if tp is bool:
+            if text.lower() in ("1", "true", "yes", "on"):
+                return True
+            if text.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(text)
+        if tp in (int, float):
+            return tp(text)
+        if typing.get_origin(tp) in (list, tuple):
+            (item, *_rest) = typing.get_args(tp)
+            parsed = [_parse_text(item, part.strip(), where) for part in text.split(",") if part.strip()]
+            return tuple(parsed) if typing.get_origin(tp) is tuple else parsed
+    except ValueError:
+        raise ConfigError(f"{where}: cannot read {text!r} as {_type_name(tp)}") from None
+    return text

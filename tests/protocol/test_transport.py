@@ -1,0 +1,100 @@
+"""Transports: URL selection, loopback multicast, unicast peers, non-blocking receive."""
+
+from __future__ import annotations
+
+import random
+import time
+
+import pytest
+
+from protocol import channels
+from protocol.auth import Keyring
+from protocol.messages import Obstacle, ObstacleList, WheelSpeed
+from protocol.transport import MemTransport, UdpMulticastTransport, UrlError, open_transport
+from rascal.bus import Bus
+from rascal.clock import WallClock
+
+
+def test_default_url_is_loopback_multicast(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("RASCAL_BUS_URL", raising=False)
+    transport = open_transport()
+    assert isinstance(transport, UdpMulticastTransport)
+    assert (transport.config.ttl, transport.config.iface) == (0, "127.0.0.1")
+    transport.close()
+
+
+def test_environment_overrides_the_default(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("RASCAL_BUS_URL", "mem://from-env")
+    assert isinstance(open_transport(), MemTransport)
+
+
+@pytest.mark.parametrize(
+    ("url", "complaint"),
+    [
+        ("udpm://239.255.76.67:7667?ttl=1", "iface="),
+        ("udpm://10.0.0.1:7667?ttl=0", "not an IPv4 multicast group"),
+        ("udpm://239.255.76.67:7667?tll=0", "unknown option"),
+        ("udpm://239.255.76.67:7667?ttl=x", "ttl='x'"),
+        ("udpm://239.255.76.67?ttl=0", "GROUP:PORT"),
+        ("tcp://127.0.0.1:1", "unknown scheme"),
+    ],
+)
+def test_bad_urls_are_refused_with_the_reason(url: str, complaint: str) -> None:
+    with pytest.raises(UrlError, match=complaint):
+        open_transport(url)
+
+
+def obstacles(count: int) -> ObstacleList:
+    return ObstacleList(1, 0, tuple(Obstacle(float(i), 2.0, 1.0, 1.0, 1.0, 0.0, 0.9, 10.0) for i in range(count)))
+
+
+def receive(bus: Bus, want: int, timeout_s: float = 2.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and sum(s.messages for s in bus.stats.values()) < want:
+        bus.poll(0.05)
+
+
+def test_multicast_on_loopback_delivers_to_every_subscriber(bus_url: str) -> None:
+    keyring = Keyring.generate()
+    publisher = Bus.open(bus_url, source_id=1, clock=WallClock(), keyring=keyring)
+    receivers = [Bus.open(bus_url, source_id=2 + i, clock=WallClock(), keyring=keyring) for i in range(2)]
+    got: list[list[ObstacleList]] = [[], []]
+    for bus, inbox in zip(receivers, got, strict=True):
+        bus.subscribe(channels.OBSTACLES_LIDAR, lambda msg, env, inbox=inbox: inbox.append(msg))
+    sent = [obstacles(3), obstacles(2000)]  # the second is ~70 KB: fragmented
+    for msg in sent:
+        publisher.publish(channels.OBSTACLES_LIDAR, msg)
+    for bus in receivers:
+        receive(bus, 2)
+    assert got == [sent, sent]
+    for bus in (publisher, *receivers):
+        bus.close()
+
+
+def test_poll_without_traffic_returns_at_once() -> None:
+    bus = Bus.open(
+        f"udpm://239.255.1.1:{random.randrange(20000, 60000, 16)}?ttl=0",
+        source_id=5,
+        clock=WallClock(),
+        keyring=Keyring.generate(),
+    )
+    bus.subscribe(channels.WHEEL_SPEED, lambda msg, env: None)
+    start = time.perf_counter()
+    assert bus.poll(0.0) == 0
+    assert time.perf_counter() - start < 0.01
+    bus.close()
+
+
+def test_unicast_peers_receive_without_joining_multicast(bus_url: str) -> None:
+    keyring = Keyring.generate()
+    publisher = Bus.open(bus_url + "&peers=127.0.0.2", source_id=1, clock=WallClock(), keyring=keyring)
+    # A receiver on another group only hears the unicast copy sent to 127.0.0.2.
+    other_group = bus_url.replace("udpm://239.", "udpm://238.") + "&peers=127.0.0.3"
+    receiver = Bus.open(other_group, source_id=2, clock=WallClock(), keyring=keyring)
+    got: list[WheelSpeed] = []
+    receiver.subscribe(channels.WHEEL_SPEED, lambda msg, env: got.append(msg))
+    publisher.publish(channels.WHEEL_SPEED, WheelSpeed(3.0, 10.0))
+    receive(receiver, 1)
+    assert got == [WheelSpeed(3.0, 10.0)]
+    publisher.close()
+    receiver.close()

@@ -1,0 +1,72 @@
+"""The module lifecycle: periodic tasks, heartbeats, inputs with max age."""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass
+
+from protocol import channels
+from protocol.auth import Keyring
+from protocol.messages import ModuleState, ModuleStatus
+from protocol.transport import MemTransport
+from rascal.bus import Bus
+from rascal.clock import WallClock
+from rascal.config import setting
+from rascal.module import Module, Runtime
+
+
+@dataclass(frozen=True)
+class CounterConfig:
+    period_s: float = setting(0.05, "task period")
+
+
+class Counter(Module):
+    name = "counter"
+    default_source_id = 40
+    Config = CounterConfig
+
+    def on_start(self) -> None:
+        self.order: list[str] = []
+        self.stopped = False
+        self.input(channels.OBSTACLES_BEACON, 0.2)
+        self.every(self.config.period_s, self.low, priority=0)
+        self.every(self.config.period_s, self.high, priority=5)
+
+    def low(self) -> None:
+        self.order.append("low")
+
+    def high(self) -> None:
+        self.order.append("high")
+
+    def on_stop(self) -> None:
+        self.stopped = True
+
+
+def make_runtime(hub: str, source_id: int, keyring: Keyring) -> Runtime:
+    return Runtime(Bus(MemTransport(hub), source_id, keyring, WallClock()), WallClock())
+
+
+def test_tasks_run_at_their_period_higher_priority_first() -> None:
+    keyring = Keyring.generate()
+    runtime = make_runtime(uuid.uuid4().hex, 40, keyring)
+    module = Counter(CounterConfig(), runtime)
+    runtime.run(module, duration_s=0.52)
+    assert 9 <= module.order.count("high") <= 12
+    assert module.order[:2] == ["high", "low"]
+    assert module.stopped
+
+
+def test_heartbeat_reports_state_and_stale_inputs() -> None:
+    keyring = Keyring.generate()
+    hub = uuid.uuid4().hex
+    listener = Bus(MemTransport(hub), 41, keyring, WallClock())
+    statuses: list[ModuleStatus] = []
+    listener.subscribe(channels.MODULE_STATUS, lambda msg, env: statuses.append(msg))
+    runtime = make_runtime(hub, 40, keyring)
+    runtime.run(Counter(CounterConfig(), runtime), duration_s=0.3)
+    listener.poll()
+    assert [s.module for s in statuses] == ["counter", "counter"]  # at start and on stopping
+    first, last = statuses
+    assert first.state == ModuleState.DEGRADED  # its input has never arrived
+    assert first.stale_inputs == (channels.OBSTACLES_BEACON,)
+    assert last.state == ModuleState.STOPPING
