@@ -58,7 +58,9 @@ class Sender(Protocol):
 
 class Receiver(Protocol):
     def pump(self, timeout_s: float) -> int:
-        """Handle what is waiting, blocking at most ``timeout_s`` for the first; return count."""
+        """Handle what is waiting, blocking at most ``timeout_s`` for the first; return count.
+
+        ``timeout_s=0.0`` must never block: the hot latency regime busy-polls with it."""
 
     def close(self) -> None: ...
 
@@ -141,13 +143,20 @@ class _RawSender:
 class _RawReceiver:
     def __init__(self, group: str, port: int, on_message: OnMessage) -> None:
         self._sock = _multicast_rx(group, port)
+        self._timeout_s = self._sock.gettimeout()
         self._on_message = on_message
 
     def pump(self, timeout_s: float) -> int:
-        self._sock.settimeout(timeout_s)
+        # settimeout() is a syscall every time; a busy-polling caller repeats the same value, and
+        # an extra syscall per poll would inflate the floor everything is compared against.
+        if timeout_s != self._timeout_s:
+            self._sock.settimeout(timeout_s)
+            self._timeout_s = timeout_s
         try:
             data = self._sock.recv(MAX_UDP_BYTES)
-        except TimeoutError:
+        except (TimeoutError, BlockingIOError):
+            # TimeoutError when a wait ran out; BlockingIOError from a timeout of 0.0, which puts
+            # the socket in non-blocking mode.
             return 0
         t_send_ns, _sensor, _frame, _obstacles = msgpack.unpackb(data, use_list=False)
         self._on_message(t_send_ns)
@@ -232,7 +241,9 @@ class _LcmReceiver:
         self._lc.subscribe(CHANNEL, handle)
 
     def pump(self, timeout_s: float) -> int:
-        return 1 if self._lc.handle_timeout(max(1, round(timeout_s * 1000))) > 0 else 0
+        # Whole milliseconds, rounded down so it never waits longer than asked. 0 is a true
+        # non-blocking poll in lcm 1.5.3: idle, handle_timeout(0) returns 0 in about 1 us.
+        return 1 if self._lc.handle_timeout(int(timeout_s * 1000)) > 0 else 0
 
     def close(self) -> None:
         del self._lc

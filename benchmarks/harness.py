@@ -2,7 +2,8 @@
 
 The parent starts the subscriber, waits until it has subscribed, starts the publisher, and
 collects both results through pipes. Children are always stopped in a ``finally`` (terminate,
-then kill), and every loop in them ends on a message count or a deadline, whichever is first.
+then kill), and every loop in them ends on a message count or a deadline, whichever is first;
+that holds for the busy mode too, where neither child ever sleeps.
 """
 
 from __future__ import annotations
@@ -79,8 +80,15 @@ class _Recorder:
         self.latencies_ns.append(self._clock() - t_send_ns)
 
 
-def run_pair(contender: Contender, rate_hz: float, count: int, keep_latencies: bool) -> PairResult:
-    """Send ``count`` messages at ``rate_hz`` from one process to another; both sides' results."""
+def run_pair(
+    contender: Contender, rate_hz: float, count: int, keep_latencies: bool, *, busy: bool = False
+) -> PairResult:
+    """Send ``count`` messages at ``rate_hz`` from one process to another; both sides' results.
+
+    By default the publisher keeps a schedule (sleeping when well ahead) and the subscriber waits
+    in ``pump(POLL_S)``. With ``busy`` the publisher spins ``1 / rate_hz`` between sends and
+    never catches up, and the subscriber calls ``pump(0.0)`` in a tight loop: no process sleeps.
+    """
     ctx = multiprocessing.get_context("fork")  # contenders hold generated LCM modules: no pickling
     ready, done = ctx.Event(), ctx.Event()
     sub_out, sub_in = ctx.Pipe(duplex=False)
@@ -88,11 +96,11 @@ def run_pair(contender: Contender, rate_hz: float, count: int, keep_latencies: b
     send_limit_s = 2.0 * count / rate_hz + 2.0
     subscriber = ctx.Process(
         target=_child,
-        args=(sub_in, _subscribe, contender, count, ready, done, send_limit_s + 5.0, keep_latencies),
+        args=(sub_in, _subscribe, contender, count, ready, done, send_limit_s + 5.0, keep_latencies, busy),
         daemon=True,
     )
     publisher = ctx.Process(
-        target=_child, args=(pub_in, _publish, contender, rate_hz, count, send_limit_s), daemon=True
+        target=_child, args=(pub_in, _publish, contender, rate_hz, count, send_limit_s, busy), daemon=True
     )
     try:
         subscriber.start()
@@ -138,10 +146,11 @@ def _stop(process: BaseProcess) -> None:
         process.join(STOP_GRACE_S)
 
 
-def _publish(contender: Contender, rate_hz: float, count: int, limit_s: float) -> PublisherResult:
+def _publish(contender: Contender, rate_hz: float, count: int, limit_s: float, busy: bool) -> PublisherResult:
     sender = contender.sender()
+    send_all = spaced_send if busy else paced_send
     try:
-        sent, elapsed_s = paced_send(sender.send, rate_hz, count, limit_s)
+        sent, elapsed_s = send_all(sender.send, rate_hz, count, limit_s)
         return PublisherResult(sent, elapsed_s, sender.dropped())
     finally:
         sender.close()
@@ -170,14 +179,35 @@ def paced_send(send: Callable[[], None], rate_hz: float, count: int, limit_s: fl
     return sent, (now - start) / 1e9
 
 
+def spaced_send(send: Callable[[], None], rate_hz: float, count: int, limit_s: float) -> tuple[int, float]:
+    """Call ``send`` ``count`` times, each ``1 / rate_hz`` after the previous one began, spinning
+    in between. A send held up (the process was preempted) goes as soon as it can, and the gap
+    counts from there.
+
+    Never catching up back to back keeps at most one message in flight whenever the gap is longer
+    than a delivery, so no sample includes queueing behind an earlier one. Returns as paced_send."""
+    gap_ns = round(1e9 / rate_hz)
+    start = time.monotonic_ns()
+    stop = start + int(limit_s * 1e9)
+    sent = 0
+    due = now = start
+    while sent < count and now < stop:
+        if now >= due:
+            send()
+            sent += 1
+            due = now + gap_ns
+        now = time.monotonic_ns()
+    return sent, (now - start) / 1e9
+
+
 def _subscribe(
-    contender: Contender, expected: int, ready: Event, done: Event, limit_s: float, keep_latencies: bool
+    contender: Contender, expected: int, ready: Event, done: Event, limit_s: float, keep_latencies: bool, busy: bool
 ) -> SubscriberResult:
     recorder = _Recorder()
     receiver = contender.receiver(recorder)
     try:
         ready.set()
-        _receive_until_quiet(receiver.pump, recorder, expected, done, limit_s)
+        _receive_until_quiet(receiver.pump, 0.0 if busy else POLL_S, recorder, expected, done, limit_s)
     finally:
         receiver.close()
     latencies = recorder.latencies_ns if keep_latencies else []
@@ -185,16 +215,19 @@ def _subscribe(
 
 
 def _receive_until_quiet(
-    pump: Callable[[float], int], recorder: _Recorder, expected: int, done: Event, limit_s: float
+    pump: Callable[[float], int], poll_s: float, recorder: _Recorder, expected: int, done: Event, limit_s: float
 ) -> None:
-    """Pump until all ``expected`` arrived, or the publisher is done and the bus went quiet."""
+    """Pump until all ``expected`` arrived, or the publisher is done and the bus went quiet.
+
+    With ``poll_s`` 0.0 this is a busy loop; the deadline bounds it like the sleeping one."""
     now = time.monotonic()
     deadline = now + limit_s
     last_traffic = now
     while len(recorder.latencies_ns) < expected and now < deadline:
-        handled = pump(POLL_S)
+        handled = pump(poll_s)
         now = time.monotonic()
         if handled:
             last_traffic = now
+        # Idle time first: done.is_set() takes a lock, too dear to ask on every busy poll.
         elif now - last_traffic > DRAIN_IDLE_S and done.is_set():
             break

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from brain.rddf_cli import add_rddf_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
 
@@ -71,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     status = time_.add_parser("status", help="this node's sync to the master and every module's clock state")
     status.add_argument("--duration", type=float, default=2.0, help="seconds to synchronise and listen")
     status.set_defaults(handler=_time_status)
+
+    add_rddf_commands(commands)
     return parser
 
 

@@ -51,7 +51,7 @@ def ring_of_obstacles(config: BeaconConfig, t_s: float) -> ObstacleList:
     count = config.obstacles
     obstacles = []
     for i in range(count):
-        angle = config.angular_speed_radps * t_s + 2 * math.pi * i / max(count, 1)
+        angle = math.remainder(config.angular_speed_radps * t_s + 2 * math.pi * i / max(count, 1), 2 * math.pi)
         x, y = config.radius_m * math.cos(angle), config.radius_m * math.sin(angle)
         obstacles.append(Obstacle(x, y, 1.0, 0.8, 1.2, angle, 0.9, math.hypot(x, y)))
     return ObstacleList(Sensor.SYNTHETIC, Frame.VEHICLE, tuple(obstacles))
