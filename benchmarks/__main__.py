@@ -8,6 +8,7 @@ import sys
 # Add new benchmark modules here; they run in this order.
 MODULES = [
     "benchmarks.bench_bus",
+    "benchmarks.bench_sim",
 ]
 
 

@@ -247,3 +247,6 @@ class SimTruth(NamedTuple):
     steering_rad: float
     progress_m: float
     collisions: int
+    accel_mps2: float = 0.0
+    corridor_exits: int = 0
+    scenario_time_s: float = 0.0  # simulated time since the scenario started: fault schedules run on it

@@ -33,7 +33,7 @@ GOLDEN: dict[int, tuple[str, str]] = {
     23: ("LaneBorders", "8ff4b3d6abcaa405"),
     30: ("Path", "87456c6d3741de56"),
     31: ("ActuatorCommand", "c06cc43844c9b5e0"),
-    90: ("SimTruth", "a81b3d56799b250c"),
+    90: ("SimTruth", "9b774763b7816aa9"),
 }
 
 INFOS = registered()

@@ -1,0 +1,140 @@
+"""The simulated vehicle in its world: applies actuator commands and publishes the truth.
+
+Each 100 Hz step applies the newest ActuatorCommand to the vehicle dynamics, checks the footprint
+against the scenario's obstacles and the RDDF corridor, and publishes SimTruth on its sim-only
+channel. Collisions and corridor exits are counted in SimTruth and reported once each, when they
+begin, as HealthEvents. Like real actuators, the vehicle keeps executing the last command it got
+until a new one arrives: stopping a vehicle whose commands went stale is the control module's job.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from modules.sim.collision import collides, footprint
+from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+from modules.sim.vehicle import VehicleParams, VehicleState, step
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import ActuatorCommand, Severity, SimTruth
+from rascal.config import setting
+from rascal.module import Module
+
+PARKED = ActuatorCommand(throttle=0.0, brake=1.0, steering_rad=0.0, stop_reason="not yet commanded")
+PROGRESS_SEARCH_M = 60  # route points searched around the last match each step
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    scenario: str = setting(str(DEFAULT_SCENARIO), "scenario TOML file")
+    rate_hz: float = setting(100.0, "simulation and SimTruth rate")
+
+
+class Simulator(Module):
+    """Vehicle dynamics and world: ActuatorCommand in, SimTruth (100 Hz) and collision events out."""
+
+    name = "sim"
+    default_source_id = 5
+    Config = SimConfig
+
+    def __init__(self, config: SimConfig, runtime: object, scenario: Scenario | None = None) -> None:
+        super().__init__(config, runtime)  # type: ignore[arg-type]
+        self.scenario = scenario
+
+    def on_start(self) -> None:
+        if self.scenario is None:
+            self.scenario = load_scenario(self.config.scenario)
+        self.world = WorldState(self.scenario, VehicleParams())
+        self.command = PARKED
+        self.dt_s = 1.0 / self.config.rate_hz
+        self.bus.subscribe(channels.ACTUATOR_COMMAND, self.on_command)
+        self.every(self.dt_s, self.tick, priority=5)
+
+    def on_command(self, command: ActuatorCommand, _envelope: Envelope) -> None:
+        self.command = command
+
+    def tick(self) -> None:
+        now = self.now_ns()
+        for code, text in self.world.advance(self.command, self.dt_s):
+            self.report(Severity.ERROR, code, text)
+        self.bus.publish(channels.SIM_TRUTH, self.world.truth(), t_meas_ns=now)
+
+    def status_detail(self) -> str:
+        world = self.world
+        return (
+            f"{world.progress_m:.0f}/{world.route_length_m:.0f} m, {world.state.speed_mps:.1f} m/s, "
+            f"collisions {world.collisions}, corridor exits {world.corridor_exits}"
+        )
+
+
+class WorldState:
+    """The vehicle in the scenario, stepped without any I/O (so tests and benchmarks drive it)."""
+
+    def __init__(self, scenario: Scenario, params: VehicleParams) -> None:
+        self.scenario = scenario
+        self.params = params
+        east, north, yaw = scenario.start_pose()
+        self.state = VehicleState(east_m=east, north_m=north, yaw_rad=yaw)
+        self.obstacles = scenario.world.obstacles
+        self.corridor = scenario.course.corridor
+        self.route_east = scenario.route.east_m
+        self.route_north = scenario.route.north_m
+        self.route_s = scenario.route.s_m
+        self.route_length_m = float(scenario.route.length_m)
+        self._route_index = 0
+        self.progress_m = 0.0
+        self.collisions = 0
+        self.corridor_exits = 0
+        self._touching: str | None = None
+        self._outside = False
+        self.elapsed_s = 0.0
+
+    def advance(self, command: ActuatorCommand, dt_s: float) -> list[tuple[str, str]]:
+        """One step; returns the events that began in it as (code, text)."""
+        step(self.state, command, dt_s, self.params)
+        self.elapsed_s += dt_s
+        self._update_progress()
+        events = []
+        hit = collides(self.state, self.obstacles, self.params)
+        if hit is not None and hit.name != self._touching:
+            self.collisions += 1
+            events.append(("collision", f"hit {hit.name} at {self.progress_m:.0f} m, {self.state.speed_mps:.1f} m/s"))
+        self._touching = hit.name if hit is not None else None
+        corners = np.array(footprint(self.state, self.params).corners())
+        outside = not bool(np.all(self.corridor.contains(corners[:, 0], corners[:, 1])))
+        if outside and not self._outside:
+            self.corridor_exits += 1
+            events.append(("corridor_exit", f"left the corridor at {self.progress_m:.0f} m"))
+        self._outside = outside
+        return events
+
+    def truth(self) -> SimTruth:
+        s = self.state
+        return SimTruth(
+            s.east_m,
+            s.north_m,
+            s.yaw_rad,
+            s.speed_mps,
+            s.yaw_rate_radps,
+            s.steering_rad,
+            self.progress_m,
+            self.collisions,
+            s.accel_mps2,
+            self.corridor_exits,
+            self.elapsed_s,
+        )
+
+    def _update_progress(self) -> None:
+        # The nearest route point near the last one: progress along the course, never a jump to
+        # a distant part of the route that happens to pass close by.
+        low = max(0, self._route_index - PROGRESS_SEARCH_M)
+        high = min(len(self.route_s), self._route_index + PROGRESS_SEARCH_M)
+        d = np.hypot(self.route_east[low:high] - self.state.east_m, self.route_north[low:high] - self.state.north_m)
+        self._route_index = low + int(np.argmin(d))
+        self.progress_m = float(self.route_s[self._route_index])
+
+    @property
+    def finished(self) -> bool:
+        return self.route_length_m - self.progress_m < 1.5

@@ -1,0 +1,105 @@
+"""The simulator: commands move the vehicle; collisions and corridor exits are counted once."""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import pytest
+
+from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
+from modules.sim.simulator import SimConfig, Simulator, WorldState
+from modules.sim.vehicle import VehicleParams
+from protocol import channels
+from protocol.auth import Keyring
+from protocol.messages import ActuatorCommand, HealthEvent, SimTruth
+from protocol.transport import MemTransport
+from rascal.bus import Bus
+from rascal.clock import ManualClock
+from rascal.module import Runtime
+
+THROTTLE = ActuatorCommand(0.6, 0.0, 0.0)
+
+
+def scenario_file(tmp_path: Path, extra: str = "") -> Path:
+    (tmp_path / "course.rddf").write_text("1,34.8650000,-116.8900000,20,25\n2,34.8650000,-116.8790000,20,25\n")
+    path = tmp_path / "straight.toml"
+    path.write_text('[scenario]\nrddf = "course.rddf"\nseed = 1\n' + extra)
+    return path
+
+
+def drive(world: WorldState, command: ActuatorCommand, seconds: float) -> list[tuple[str, str]]:
+    events = []
+    for _ in range(round(seconds * 100)):
+        events += world.advance(command, 0.01)
+    return events
+
+
+def test_throttle_moves_the_vehicle_along_the_course(tmp_path: Path) -> None:
+    world = WorldState(load_scenario(scenario_file(tmp_path)), VehicleParams())
+    drive(world, THROTTLE, 10.0)
+    assert world.progress_m > 30 and world.state.speed_mps > 5
+    assert world.collisions == 0 and world.corridor_exits == 0
+
+
+def test_hitting_an_obstacle_counts_one_collision_and_reports_it_once(tmp_path: Path) -> None:
+    rock = "[[obstacle]]\nname = 'rock'\nshape = 'box'\nat_m = 30.0\nlength_m = 1.0\nwidth_m = 3.0\nheight_m = 1.0\n"
+    world = WorldState(load_scenario(scenario_file(tmp_path, rock)), VehicleParams())
+    events = drive(world, ActuatorCommand(0.3, 0.0, 0.0), 15.0)
+    assert world.collisions == 1
+    assert [code for code, _text in events] == ["collision"]
+
+
+def test_leaving_the_corridor_counts_one_exit(tmp_path: Path) -> None:
+    world = WorldState(load_scenario(scenario_file(tmp_path)), VehicleParams())
+    events = drive(world, ActuatorCommand(0.4, 0.0, 0.4), 8.0)
+    assert world.corridor_exits >= 1
+    assert events[0][0] == "corridor_exit"
+
+
+def test_the_default_scenario_starts_inside_the_corridor_at_rest() -> None:
+    world = WorldState(load_scenario(DEFAULT_SCENARIO), VehicleParams())
+    assert world.advance(ActuatorCommand(0.0, 1.0, 0.0), 0.01) == []
+    assert world.truth().speed_mps == 0.0
+
+
+def test_runs_are_deterministic() -> None:
+    scenario = load_scenario(DEFAULT_SCENARIO)
+    first, second = WorldState(scenario, VehicleParams()), WorldState(scenario, VehicleParams())
+    for world in (first, second):
+        drive(world, ActuatorCommand(0.5, 0.0, 0.05), 5.0)
+    assert first.truth() == second.truth()
+
+
+@pytest.fixture
+def rig(tmp_path: Path):
+    hub, keyring, clock = uuid.uuid4().hex, Keyring.generate(), ManualClock()
+    runtime = Runtime(Bus(MemTransport(hub), 5, keyring, clock), clock)
+    sim = Simulator(SimConfig(), runtime, scenario=load_scenario(scenario_file(tmp_path)))
+    sim.on_start()
+    peer = Bus(MemTransport(hub), 9, keyring, clock)
+    return sim, peer, clock
+
+
+def test_module_applies_commands_and_publishes_truth(rig) -> None:
+    sim, peer, clock = rig
+    truths: list[SimTruth] = []
+    peer.subscribe(channels.SIM_TRUTH, lambda msg, env: truths.append(msg))
+    peer.publish(channels.ACTUATOR_COMMAND, THROTTLE)
+    sim.bus.poll()
+    for _ in range(300):
+        clock.advance(10_000_000)
+        sim.tick()
+        peer.poll()
+    assert len(truths) == 300
+    assert truths[-1].speed_mps > 3 and truths[-1].scenario_time_s == pytest.approx(3.0)
+
+
+def test_module_keeps_the_vehicle_braked_until_commanded(rig) -> None:
+    sim, peer, clock = rig
+    events: list[HealthEvent] = []
+    peer.subscribe(channels.HEALTH, lambda msg, env: events.append(msg))
+    for _ in range(100):
+        clock.advance(10_000_000)
+        sim.tick()
+    assert sim.world.truth().progress_m == 0.0 and sim.world.state.speed_mps == 0.0
