@@ -9,6 +9,7 @@ import sys
 MODULES = [
     "benchmarks.bench_bus",
     "benchmarks.bench_sim",
+    "benchmarks.bench_lidar",
 ]
 
 

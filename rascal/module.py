@@ -78,6 +78,11 @@ class Module:
         """One line for the heartbeat, e.g. what the module is doing."""
         return ""
 
+    def instance(self) -> str:
+        """The name this process reports itself by; modules run several times (one process per
+        lidar) make it unique."""
+        return self.name
+
     # Conveniences for subclasses.
     def every(self, period_s: float, fn: Callable[[], None], *, offset_s: float = 0.0, priority: int = 0) -> None:
         self.runtime.add_task(fn.__name__, fn, period_s, offset_s, priority)
@@ -89,7 +94,7 @@ class Module:
         return self.clock.now_ns()
 
     def report(self, severity: Severity, code: str, text: str) -> None:
-        self.bus.publish(channels.HEALTH, HealthEvent(self.name, int(severity), code, text))
+        self.bus.publish(channels.HEALTH, HealthEvent(self.instance(), int(severity), code, text))
 
 
 class Runtime:
@@ -193,7 +198,7 @@ class Runtime:
         clock_state, offset, bound = self._clock_status()
         main_period = min((t.period_ns for t in self._tasks if t.name not in ("heartbeat", "time_request")), default=0)
         status = ModuleStatus(
-            module.name,
+            module.instance(),
             int(state),
             (time.monotonic_ns() - self._started_ns) / 1e9,
             main_period,

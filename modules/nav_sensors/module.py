@@ -31,6 +31,7 @@ from modules.nav_sensors.models import (
     SpeedometerParams,
     TruthState,
 )
+from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import SensorFault
 from protocol import channels
 from protocol.codec import Envelope
@@ -46,7 +47,7 @@ TRUTH_MAX_AGE_S = 0.1
 
 @dataclass(frozen=True)
 class NavSensorsConfig:
-    scenario: str = setting("deploy/scenarios/mojave.toml", "scenario TOML: ENU origin, seed and fault schedule")
+    scenario: str = setting(str(DEFAULT_SCENARIO), "scenario TOML: ENU origin, seed and fault schedule")
     seed_offset: int = setting(0, "non-negative, combined with the scenario seed: change it for other noise")
     imu_hz: float = setting(100.0, "IMU rate (at most the truth rate)")
     gps_hz: float = setting(10.0, "DGPS fix rate")
@@ -64,11 +65,8 @@ class ScenarioInputs(NamedTuple):
 
 def scenario_inputs(path: str) -> ScenarioInputs:
     """Origin, seed and fault schedule of the scenario file at ``path``."""
-    # Imported on use: the loader belongs to the simulator, and tests inject inputs instead.
-    from modules.sim.scenario import load_scenario
-
     scenario = load_scenario(path)
-    origin = GeodeticOrigin(scenario.origin_lat_deg, scenario.origin_lon_deg, scenario.origin_alt_m)
+    origin = scenario.origin
     return ScenarioInputs(origin, scenario.seed, tuple(scenario.world.faults))
 
 
@@ -121,7 +119,6 @@ class SensorSuite:
             channels.WHEEL_SPEED: RateGate(config.speedometer_hz),
             channels.MAG_HEADING: RateGate(config.magnetometer_hz),
         }
-        self.start_ns: int | None = None
         self.last_ns: int | None = None
         self.samples = 0
         self.dropped = 0
@@ -132,15 +129,15 @@ class SensorSuite:
         if self.last_ns is not None and t_meas_ns <= self.last_ns:
             self.dropped += 1
             return []
-        if self.start_ns is None:
-            self.start_ns = t_meas_ns
         self.last_ns = t_meas_ns
         self.samples += 1
-        elapsed_ns = t_meas_ns - self.start_ns
-        # Faults run on the simulator's scenario clock, so every sensor process sees the same
-        # schedule however late it started.
+        # Sample rates and faults both run on the simulator's scenario clock: it advances by
+        # exact steps (shared-time stamps jitter with the simulator's loop, and a jittered
+        # stream on a grid of its own rate would skip samples), and every sensor process sees
+        # the same schedule however late it started.
         t_s = truth.scenario_time_s
-        due = {channel for channel, gate in self._gates.items() if gate.due(elapsed_ns)}
+        scenario_ns = round(t_s * 1e9)
+        due = {channel for channel, gate in self._gates.items() if gate.due(scenario_ns)}
         out: list[tuple[str, Any]] = []
         if channels.IMU in due:
             out.append((channels.IMU, self.imu.measure(truth, t_meas_ns, t_s)))

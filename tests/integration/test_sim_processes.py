@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
 
+from modules.sim.scenario import load_scenario
 from protocol import channels
 from protocol.auth import load_keyring
 from protocol.codec import Envelope
@@ -19,6 +21,7 @@ from tests.conftest import Processes
 
 pytestmark = pytest.mark.slow
 
+LIDAR_SOURCE_IDS = {"lidar_h_left": 21, "lidar_h_right": 22, "lidar_v_left": 23, "lidar_v_right": 24}
 RDDF = "1,34.8650000,-116.8900000,30,25\n2,34.8650000,-116.8790000,30,25\n"
 SCENARIO = """
 [scenario]
@@ -92,3 +95,80 @@ def test_simulator_and_nav_sensors_run_as_processes(
     assert rate(channels.GPS, 0.5, 1.9) == pytest.approx(10, rel=0.2)
     assert rate(channels.GPS, 2.1, 2.9) == 0
     assert rate(channels.GPS, 3.1, 4.9) == pytest.approx(10, rel=0.2)
+
+
+LIDAR_FAULT = """
+[[fault]]
+sensors = ["lidars"]
+kind = "silence"
+start_s = 3.0
+"""
+
+
+def test_lidars_see_the_rock_within_20_cm_and_fall_silent_on_schedule(
+    bus_url: str, key_file: Path, processes: Processes, tmp_path: Path
+) -> None:
+    (tmp_path / "course.rddf").write_text(RDDF)
+    scenario = tmp_path / "lidar.toml"
+    scenario.write_text(SCENARIO.split("[[fault]]")[0] + LIDAR_FAULT)
+    rock = next(o for o in load_scenario(scenario).world.obstacles if o.name == "rock")
+    processes.module("time_service")
+    processes.module("sim", "--set", f"scenario={scenario}")
+    for name, source_id in LIDAR_SOURCE_IDS.items():
+        processes.module(
+            "lidar",
+            "--source-id",
+            str(source_id),
+            "--set",
+            f"sensor={name}",
+            "--set",
+            f"scenario={scenario}",
+            label=name,
+        )
+    clock = SharedClock()
+    bus = Bus.open(bus_url, source_id=911, clock=clock, keyring=load_keyring(key_file))
+    time_client = TimeClient(bus, clock)
+    truth_at: dict[int, SimTruth] = {}
+    scans: list[tuple[float, str, int, object]] = []  # (scenario time, channel, source, message)
+
+    def on_truth(truth: SimTruth, env: Envelope) -> None:
+        truth_at[env.t_meas_ns] = truth
+
+    def on_lidar(channel: str):
+        def handler(msg: object, env: Envelope) -> None:
+            truth = truth_at.get(env.t_meas_ns)
+            scans.append((truth.scenario_time_s if truth else -1.0, channel, env.source_id, (msg, truth)))
+
+        return handler
+
+    bus.subscribe(channels.SIM_TRUTH, on_truth)
+    bus.subscribe(channels.OBSTACLES_LIDAR, on_lidar(channels.OBSTACLES_LIDAR))
+    bus.subscribe(channels.SURFACE_PROFILE, on_lidar(channels.SURFACE_PROFILE))
+    deadline = time.monotonic() + 25.0
+    next_sync = 0.0
+    latest = lambda: max((t.scenario_time_s for t in truth_at.values()), default=0.0)  # noqa: E731
+    while time.monotonic() < deadline and latest() < 5.0:
+        if time.monotonic() > next_sync:
+            time_client.request()
+            next_sync = time.monotonic() + 0.1
+        bus.poll(0.01)
+    bus.close()
+    assert latest() >= 5.0, processes.log("sim")
+
+    before = [s for s in scans if 1.0 <= s[0] < 2.9]
+    for source_id in LIDAR_SOURCE_IDS.values():
+        count = sum(s[2] == source_id for s in before)
+        assert count / 1.9 == pytest.approx(25, rel=0.25), f"lidar {source_id}: {count} in 1.9 s"
+    assert not [s for s in scans if s[0] >= 3.05], "a lidar spoke during the silence fault"
+
+    errors = []
+    for _t, channel, _source, (msg, truth) in before:
+        if channel != channels.OBSTACLES_LIDAR or truth is None:
+            continue
+        for obstacle in msg.obstacles:
+            c, s = math.cos(truth.yaw_rad), math.sin(truth.yaw_rad)
+            east = truth.east_m + c * obstacle.x_m - s * obstacle.y_m
+            north = truth.north_m + s * obstacle.x_m + c * obstacle.y_m
+            errors.append(math.hypot(east - rock.east_m, north - rock.north_m))
+    assert errors, "no horizontal lidar reported the rock"
+    assert max(errors) <= 0.2

@@ -1,0 +1,146 @@
+"""One simulated lidar per process: it reads the simulator's true pose, looks at the scenario's
+world from its mount, and publishes what that lidar would: obstacle descriptors (horizontal
+lidars) or a ground profile (vertical lidars), with the scenario's sensor faults applied.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from modules.lidar.cluster import describe_scan
+from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profile_scan
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, cast
+from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
+from modules.sim.world import FaultKind, World
+from protocol import channels
+from protocol.messages import Frame, ObstacleList, Sensor, SimTruth, SurfaceProfile
+from rascal.config import setting
+from rascal.module import Module, Runtime
+from rascal.rtdb import Validity
+
+# Source ids the runner gives each lidar process (``--source-id``), and what each one is.
+SOURCE_IDS: dict[str, int] = {"lidar_h_left": 21, "lidar_h_right": 22, "lidar_v_left": 23, "lidar_v_right": 24}
+SENSORS: dict[str, Sensor] = {
+    "lidar_h_left": Sensor.LIDAR_H_LEFT,
+    "lidar_h_right": Sensor.LIDAR_H_RIGHT,
+    "lidar_v_left": Sensor.LIDAR_V_LEFT,
+    "lidar_v_right": Sensor.LIDAR_V_RIGHT,
+}
+# The simulator publishes truth far faster than this; a pose older than this means it stopped,
+# and a lidar without a pose has nothing to scan from.
+TRUTH_MAX_AGE_S = 0.5
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    sensor: str = setting("lidar_h_left", "which lidar: lidar_h_left, lidar_h_right, lidar_v_left, lidar_v_right")
+    scenario: str = setting(str(DEFAULT_SCENARIO), "scenario file whose world the lidar sees")
+    rate_hz: float = setting(25.0, "publication rate (a horizontal scanner sweeps at 75 Hz; the newest sweep is sent)")
+    noise_std_m: float = setting(0.01, "range noise, one sigma, before any NOISE fault")
+    seed_offset: int = setting(0, "combined with the scenario seed: change it for independent noise")
+
+
+class Lidar(Module):
+    """Simulated lidar: horizontal ones publish ObstacleList, vertical ones SurfaceProfile."""
+
+    name = "lidar"
+    default_source_id = SOURCE_IDS["lidar_h_left"]
+    Config = LidarConfig
+
+    def __init__(self, config: LidarConfig, runtime: Runtime, world: World | None = None, seed: int = 0) -> None:
+        """``world`` (with its ``seed``) replaces the scenario file: tests and an in-process
+        simulator hand it over; otherwise on_start loads ``config.scenario``."""
+        super().__init__(config, runtime)
+        self.world = world
+        self.seed = seed
+        self.last_truth_ns: int | None = None
+        self.last_output: ObstacleList | SurfaceProfile | None = None  # what STUCK repeats
+        self.published = 0
+        self.active_faults: tuple[FaultKind, ...] = ()
+        self.last_summary = ""
+
+    def on_start(self) -> None:
+        config = self.config
+        if config.sensor not in SENSORS:
+            raise ValueError(f"lidar: sensor must be one of {sorted(SENSORS)}, not {config.sensor!r}")
+        if not 0 < config.rate_hz <= ScanSpec.scan_rate_hz:
+            raise ValueError(f"lidar: rate_hz must be in (0, {ScanSpec.scan_rate_hz}], the scanner's sweep rate")
+        if self.world is None:
+            scenario = load_scenario(config.scenario)
+            self.world, self.seed = scenario.world, scenario.seed
+        self.horizontal = config.sensor in HORIZONTAL_MOUNTS
+        self.scene = Scene.from_obstacles(self.world.obstacles)
+        self.spec = ScanSpec(range_noise_std_m=config.noise_std_m)
+        self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S)
+        self.every(1.0 / config.rate_hz, self.sweep, priority=1)
+
+    def sweep(self) -> None:
+        """Scan from the newest true pose and publish, as the active faults allow. One output per
+        new pose at most: without a new pose there is no new measurement. Faults are looked up at
+        the pose's scenario time, so all sensor processes apply them together however late each
+        one started."""
+        reading = self.truth.read(self.now_ns())
+        if reading.validity is not Validity.FRESH or reading.envelope is None:
+            return
+        truth: SimTruth = reading.value
+        t_meas_ns = reading.envelope.t_meas_ns
+        if t_meas_ns == self.last_truth_ns:
+            return
+        self.last_truth_ns = t_meas_ns
+        assert self.world is not None
+        faults = self.world.faults_for(self.config.sensor, truth.scenario_time_s)
+        kinds = {fault.kind for fault in faults}
+        self.active_faults = tuple(sorted(kinds, key=lambda kind: kind.value))
+        if FaultKind.SILENCE in kinds:
+            return
+        if FaultKind.STUCK in kinds:
+            # A stuck driver keeps delivering its last buffer as if it were new: same content,
+            # stamped now, so only the content gives it away (nothing until there was a buffer).
+            if self.last_output is not None:
+                self._publish(self.last_output, t_meas_ns)
+            return
+        noise_scale = math.prod(fault.magnitude for fault in faults if fault.kind is FaultKind.NOISE)
+        self.last_output = self.measure(truth, t_meas_ns, noise_scale)
+        self._publish(self.last_output, t_meas_ns)
+
+    def measure(self, truth: SimTruth, t_meas_ns: int, noise_scale: float = 1.0) -> ObstacleList | SurfaceProfile:
+        """What this lidar sees from the vehicle pose in ``truth``. The noise is drawn from a
+        generator seeded by (seed, seed_offset, sensor, t_meas_ns): the same truth stream gives
+        the same output however the process happens to be scheduled."""
+        assert self.world is not None
+        sensor = self.config.sensor
+        entropy = [self.seed % 2**64, self.config.seed_offset % 2**64, SOURCE_IDS[sensor], t_meas_ns % 2**64]
+        rng = np.random.default_rng(np.random.SeedSequence(entropy))
+        pose = Pose2D(truth.east_m, truth.north_m, truth.yaw_rad)
+        if self.horizontal:
+            scan = cast(self.scene, pose, HORIZONTAL_MOUNTS[sensor], self.spec, rng, noise_scale)
+            obstacles = describe_scan(scan)
+            self.last_summary = f"{len(obstacles)} obstacles"
+            return ObstacleList(int(SENSORS[sensor]), int(Frame.VEHICLE), obstacles)
+        mount = replace(VERTICAL_MOUNTS[sensor], range_noise_std_m=self.config.noise_std_m)
+        profile = profile_scan(self.world.hazards, pose, mount, int(SENSORS[sensor]), rng, noise_scale)
+        self.last_summary = _hazard_summary(detect_hazards(profile))
+        return profile
+
+    def _publish(self, message: ObstacleList | SurfaceProfile, t_meas_ns: int) -> None:
+        channel = channels.OBSTACLES_LIDAR if self.horizontal else channels.SURFACE_PROFILE
+        self.bus.publish(channel, message, t_meas_ns=t_meas_ns)
+        self.published += 1
+
+    def instance(self) -> str:
+        return self.config.sensor
+
+    def status_detail(self) -> str:
+        faults = ",".join(kind.value for kind in self.active_faults)
+        return f"{self.config.sensor}: sent {self.published}; {self.last_summary}" + (
+            f"; fault {faults}" if faults else ""
+        )
+
+
+def _hazard_summary(hazards: list[Hazard]) -> str:
+    if not hazards:
+        return "level ground"
+    return ", ".join(f"{h.kind.value} {h.start_range_m:.1f}-{h.end_range_m:.1f} m" for h in hazards)
