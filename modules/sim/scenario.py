@@ -6,6 +6,7 @@
     [random_obstacles]    seeded random obstacles inside the corridor
     [[hazard]]            ditches, berms and drop-offs for the vertical lidars
     [[fault]]             the sensor fault schedule (seconds after the start)
+    [gps_jumps]           occasional seeded GPS jumps, added to the fault schedule
 
 Placement by ``at_m`` (arc length along the course centreline) and ``offset_m`` (left of it,
 metres) keeps a scenario readable and valid when the course is edited. Every key is checked: a
@@ -100,7 +101,7 @@ def load_scenario(path: str | Path = DEFAULT_SCENARIO) -> Scenario:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{path}: not valid TOML: {exc}") from exc
     reader = _Reader(path)
-    reader.keys(doc, "", {"scenario", "road", "obstacle", "random_obstacles", "hazard", "fault"})
+    reader.keys(doc, "", {"scenario", "road", "obstacle", "random_obstacles", "hazard", "fault", "gps_jumps"})
     head = reader.table(doc, "scenario", required=True)
     reader.keys(head, "scenario", {"name", "rddf", "seed", "origin"})
     course = _course(reader, head)
@@ -117,7 +118,10 @@ def load_scenario(path: str | Path = DEFAULT_SCENARIO) -> Scenario:
         obstacles=tuple(obstacles),
         hazards=tuple(_hazard(reader, route, t, f"hazard[{i}]") for i, t in enumerate(reader.array(doc, "hazard"))),
         lane_borders=_road(reader, route, reader.table(doc, "road")),
-        faults=tuple(_fault(reader, t, f"fault[{i}]") for i, t in enumerate(reader.array(doc, "fault"))),
+        faults=(
+            *(_fault(reader, t, f"fault[{i}]") for i, t in enumerate(reader.array(doc, "fault"))),
+            *_gps_jumps(reader, reader.table(doc, "gps_jumps"), seed),
+        ),
     )
     name = reader.string(head, "scenario", "name", default=path.stem)
     return Scenario(name, path, seed, course, route, world)
@@ -412,3 +416,26 @@ def _fault(reader: _Reader, table: dict[str, Any], where: str) -> SensorFault:
         end_s=reader.number(table, where, "end_s", default=FOREVER_S, low=start),
         magnitude=reader.number(table, where, "magnitude", default=1.0),
     )
+
+
+def _gps_jumps(reader: _Reader, table: dict[str, Any], seed: int) -> list[SensorFault]:
+    """Seeded GPS jumps at random times (a Poisson process): multipath and bad corrections make
+    real DGPS fixes leap now and then, and the navigation filter must reject them."""
+    if not table:
+        return []
+    where = "gps_jumps"
+    reader.keys(table, where, {"per_hour", "magnitude_m", "duration_s", "horizon_s"})
+    per_hour = reader.number(table, where, "per_hour", low=0.0, high=3600.0)
+    magnitude = reader.range_pair(table, where, "magnitude_m", [5.0, 20.0])
+    duration = reader.range_pair(table, where, "duration_s", [1.0, 5.0])
+    horizon = reader.number(table, where, "horizon_s", default=3600.0, low=1.0, high=86400.0)
+    rng = np.random.default_rng([seed, 1])  # its own stream: obstacles stay put when jumps change
+    jumps, t = [], 0.0
+    while per_hour > 0:
+        t += float(rng.exponential(3600.0 / per_hour))
+        if t >= horizon:
+            break
+        length = float(rng.uniform(*duration))
+        jumps.append(SensorFault(("gps",), FaultKind.JUMP, t, t + length, float(rng.uniform(*magnitude))))
+        t += length
+    return jumps

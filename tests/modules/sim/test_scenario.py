@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -102,3 +103,12 @@ def test_fault_schedule_is_loaded_with_times(tmp_path: Path) -> None:
     path = write(tmp_path, "[[fault]]\nsensors = ['lidars']\nkind = 'silence'\nstart_s = 60.0\n")
     [fault] = load_scenario(path).world.faults
     assert fault.kind is FaultKind.SILENCE and not fault.active(59.9) and fault.active(60.0) and fault.active(1e6)
+
+
+def test_gps_jumps_are_seeded_faults_at_the_configured_rate(tmp_path: Path) -> None:
+    path = write(tmp_path, "[gps_jumps]\nper_hour = 60.0\nmagnitude_m = [5.0, 20.0]\nhorizon_s = 36000.0\n")
+    jumps = load_scenario(path).world.faults
+    assert all(f.kind is FaultKind.JUMP and f.sensors == ("gps",) and 5 <= f.magnitude <= 20 for f in jumps)
+    assert len(jumps) == pytest.approx(600, rel=0.15)  # 60 an hour for 10 hours
+    assert jumps == load_scenario(path).world.faults
+    assert all(a.end_s <= b.start_s for a, b in itertools.pairwise(jumps))
