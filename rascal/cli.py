@@ -33,7 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     commands.add_parser("module", help="run one module process: rascal module NAME [options]")
 
-    demo = commands.add_parser("demo", help="time service + modules on the loopback bus, shown by the bus tools")
+    demo = commands.add_parser(
+        "demo", help="the simulated vehicle with every sensor on the loopback bus, and a lidar failure"
+    )
     demo.set_defaults(handler=_demo)
 
     keygen = commands.add_parser("keygen", help="write a new deployment key file (mode 600)")

@@ -1,6 +1,6 @@
 """`rascal demo`: the most complete end-to-end job this stack can do today.
 
-Starts the time service, the simulator on the default scenario, the navigation sensor stubs,
+Starts the time service, the simulator on the default scenario, the simulated navigation sensors,
 the four lidars and the health monitor as separate processes on the signed loopback bus; drives
 the vehicle a few metres with a steady throttle (there is no planner or controller yet); shows
 the traffic with the bus tools; then silences every lidar at once, as RASCAL's overheated USB

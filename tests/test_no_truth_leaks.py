@@ -1,4 +1,4 @@
-"""No truth leaks: only the simulator and the sensor stubs may read the simulator's truth.
+"""No truth leaks: only the simulator and the simulated sensors may read the simulator's truth.
 
 Estimation, planning and control must work from sensors alone, or the simulated drive proves
 nothing. This scans every source file outside the allowed packages for any reference to the
@@ -16,7 +16,7 @@ TRUTH_NAMES = {"SIM_TRUTH", "SimTruth"}
 ALLOWED = {
     Path("protocol"),  # where the channel and type are declared
     Path("modules/sim"),  # the simulator publishes the truth
-    Path("modules/nav_sensors"),  # sensor stubs measure it
+    Path("modules/nav_sensors"),  # simulated sensors measure it
     Path("modules/lidar"),
 }
 CHECKED = ("brain", "esvs_client", "modules", "rascal")
@@ -42,14 +42,14 @@ def _name_of(node: ast.AST) -> str | None:
     return None
 
 
-def test_only_the_simulator_and_sensor_stubs_touch_the_truth() -> None:
+def test_only_the_simulator_and_simulated_sensors_touch_the_truth() -> None:
     leaks = []
     for top in CHECKED:
         for path in sorted((ROOT / top).rglob("*.py")):
             relative = path.relative_to(ROOT)
             if not any(relative.is_relative_to(allowed) for allowed in ALLOWED):
                 leaks += truth_references(path)
-    assert leaks == [], "truth read outside the simulator and sensor stubs:\n" + "\n".join(leaks)
+    assert leaks == [], "truth read outside the simulator and simulated sensors:\n" + "\n".join(leaks)
 
 
 def test_the_scan_would_see_a_subscription(tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ noise that follows it.
 Faults (``modules.sim.world.SensorFault``), looked up with ``World.faults_for(name, t_s)``:
 
 - SILENCE and OUTAGE: no output. For the GPS an outage is no fix at all rather than a fix
-  marked INVALID, so no consumer can mistake a placeholder for a position; a filter detects it
+  marked INVALID, so no consumer can mistake a stand-in for a position; a filter detects it
   as a GPS input that goes stale (fixes are due every 0.1 s).
 - STUCK: the last output repeats (nothing until there was one).
 - NOISE: the white noise is multiplied by ``magnitude`` (the reported std is not: the sensor

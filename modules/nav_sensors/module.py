@@ -1,4 +1,4 @@
-"""Navigation sensor stubs: the simulator's true state in, IMU, DGPS, speedometer and two
+"""Simulated navigation sensors: the simulator's true state in, IMU, DGPS, speedometer and two
 magnetometers out, each on its own channel stamped with the truth sample's measurement time.
 
 Publication is driven by the truth stream, not by a timer: every new SimTruth sample is a
@@ -151,7 +151,7 @@ class SensorSuite:
 
 
 class NavSensors(Module):
-    """Navigation sensor stubs: IMU, DGPS, speedometer and two magnetometers from SIM_TRUTH."""
+    """Simulated navigation sensors: IMU, DGPS, speedometer and two magnetometers from SIM_TRUTH."""
 
     name = "nav_sensors"
     default_source_id = 10

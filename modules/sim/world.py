@@ -1,6 +1,6 @@
 """The simulated world a scenario describes, in the course's local ENU frame (metres).
 
-Plain frozen dataclasses shared by the simulator (collisions), the lidar and camera stubs (what
+Plain frozen dataclasses shared by the simulator (collisions), the simulated lidars and cameras (what
 they see) and the scenario loader (what a TOML file declares). Geometry helpers that several
 consumers need live here too, so there is one definition of where an obstacle is.
 """

@@ -1,4 +1,4 @@
-"""The simulator and every sensor stub as separate processes on the signed loopback bus."""
+"""The simulator and every simulated sensor as separate processes on the signed loopback bus."""
 
 from __future__ import annotations
 
