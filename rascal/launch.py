@@ -22,6 +22,8 @@ def module_class(name: str) -> type[Module]:
         package = importlib.import_module(f"modules.{name}")
     except ModuleNotFoundError:
         raise SystemExit(f"no module named {name!r} under modules/") from None
+    if not hasattr(package, "MODULE"):
+        raise SystemExit(f"modules.{name} is a library, not a runnable module")
     return package.MODULE
 
 

@@ -1,0 +1,201 @@
+"""Test helper: a scripted drive through the sensor models, and a filter run over it.
+
+The vehicle (modules.sim.vehicle) holds 10 m/s on a repeating script of straights and
+left and right curves; each 100 Hz truth sample goes through the nav sensor models at the nav
+module's rates (IMU 100 Hz, GPS 10 Hz, speedometer 50 Hz, each magnetometer 20 Hz). Everything is
+offline and seeded: the same seed and faults give the same measurements.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from brain.corridor import GeodeticOrigin
+from modules.ins.ekf import InsEkf
+from modules.nav_sensors.models import (
+    MAGNETOMETER_1,
+    MAGNETOMETER_2,
+    GpsModel,
+    GpsParams,
+    ImuModel,
+    ImuParams,
+    MagnetometerModel,
+    SpeedometerModel,
+    SpeedometerParams,
+)
+from modules.sim.vehicle import VehicleParams, VehicleState, step
+from modules.sim.world import FaultKind, SensorFault
+from protocol.messages import ActuatorCommand
+
+ORIGIN = GeodeticOrigin(35.0, -117.0, 700.0)
+STEP_NS = 10_000_000  # the simulator's 100 Hz
+T0_NS = 1_000_000_000_000  # shared time of the first sample: arbitrary, not zero
+SPEED_MPS = 10.0
+# (seconds, steering rad): about 62 m radius curves at 0.03 rad, repeated for as long as the drive lasts.
+SCRIPT: tuple[tuple[float, float], ...] = (
+    (15.0, 0.0),
+    (8.0, 0.03),
+    (10.0, 0.0),
+    (12.0, -0.03),
+    (6.0, 0.0),
+    (5.0, 0.05),
+)
+
+
+class Truth(NamedTuple):
+    """One true state sample, in the shape the sensor models read."""
+
+    east_m: float
+    north_m: float
+    yaw_rad: float
+    speed_mps: float
+    yaw_rate_radps: float
+    scenario_time_s: float
+
+
+class Event(NamedTuple):
+    """A measurement as the filter receives it: arrival order is list order."""
+
+    t_ns: int
+    kind: str  # imu, gps, speed, mag
+    msg: Any
+
+
+@dataclass(frozen=True)
+class Drive:
+    truth: list[Truth]  # sample k is at T0_NS + k * STEP_NS
+    events: list[Event]
+
+
+def gps_outage(start_s: float, end_s: float) -> SensorFault:
+    return SensorFault(("gps",), FaultKind.OUTAGE, start_s, end_s)
+
+
+def gps_jump(start_s: float, end_s: float, metres: float) -> SensorFault:
+    return SensorFault(("gps",), FaultKind.JUMP, start_s, end_s, metres)
+
+
+def t_ns_at(t_s: float) -> int:
+    return T0_NS + round(t_s * 100) * STEP_NS
+
+
+def steering_at(t_s: float) -> float:
+    """The scripted steering angle at ``t_s``, repeating the script."""
+    t = t_s % sum(d for d, _ in SCRIPT)
+    for duration, steering in SCRIPT:
+        if t < duration:
+            return steering
+        t -= duration
+    return 0.0
+
+
+def drive(duration_s: float, seed: int, faults: Sequence[SensorFault] = ()) -> Drive:
+    """Drive for ``duration_s`` and measure every step; ``seed`` fixes every sensor's noise."""
+    params = VehicleParams()
+    rngs = [np.random.default_rng([seed, i]) for i in range(5)]
+    imu = ImuModel(ImuParams(), rngs[0], faults)
+    gps = GpsModel(GpsParams(), ORIGIN, rngs[1], faults)
+    speedometer = SpeedometerModel(SpeedometerParams(), rngs[2], faults)
+    mags = (
+        MagnetometerModel(1, MAGNETOMETER_1, rngs[3], faults),
+        MagnetometerModel(2, MAGNETOMETER_2, rngs[4], faults),
+    )
+    # Start at speed, heading north-east, so the first minute is not spent accelerating.
+    vehicle = VehicleState(yaw_rad=math.radians(40.0), speed_mps=SPEED_MPS)
+    truth: list[Truth] = []
+    events: list[Event] = []
+    for k in range(round(duration_s * 100) + 1):
+        t_s = k * 0.01
+        if k:
+            # Throttle near the cruise setting, plus a proportional hold on the speed.
+            throttle = 0.3 + 0.5 * (SPEED_MPS - vehicle.speed_mps)
+            step(vehicle, ActuatorCommand(throttle, 0.0, steering_at(t_s)), 0.01, params)
+        sample = Truth(vehicle.east_m, vehicle.north_m, vehicle.yaw_rad, vehicle.speed_mps, vehicle.yaw_rate_radps, t_s)
+        truth.append(sample)
+        t_ns = T0_NS + k * STEP_NS
+        due: list[tuple[str, Any]] = [("imu", imu.measure(sample, t_ns, t_s))]
+        if k % 10 == 0:
+            due.append(("gps", gps.measure(sample, t_ns, t_s)))
+        if k % 2 == 0:
+            due.append(("speed", speedometer.measure(sample, t_ns, t_s)))
+        if k % 5 == 0:
+            due += [("mag", mag.measure(sample, t_ns, t_s)) for mag in mags]
+        events += [Event(t_ns, kind, msg) for kind, msg in due if msg is not None]
+    return Drive(truth, events)
+
+
+def delay(events: Iterable[Event], delays_ns: Mapping[str, int]) -> list[Event]:
+    """The events in arrival order when each kind arrives ``delays_ns[kind]`` after its
+    measurement time (stamps unchanged): late, out of order with the others."""
+    keyed = [(e.t_ns + delays_ns.get(e.kind, 0), i, e) for i, e in enumerate(events)]
+    return [e for _, _, e in sorted(keyed)]
+
+
+class Run(NamedTuple):
+    """Per truth sample: the filter's estimate at that time, and what the checks need."""
+
+    east_m: np.ndarray
+    north_m: np.ndarray
+    yaw_rad: np.ndarray
+    speed_mps: np.ndarray
+    quality: np.ndarray
+    position_var_m2: np.ndarray  # east + north variance
+    mag_bias_rad: np.ndarray  # (samples, 2)
+    worst_asymmetry: float  # max |P - P'| seen
+    min_eigenvalue: float  # smallest eigenvalue of P seen
+
+
+def run(ekf: InsEkf, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
+    """Feed ``events`` to ``ekf`` and read its estimate after every IMU sample."""
+    est = np.full((samples, 7), np.nan)
+    quality = np.zeros(samples, dtype=int)
+    asymmetry, min_eig = 0.0, math.inf
+    handlers = {"imu": ekf.on_imu, "gps": ekf.on_gps, "speed": ekf.on_speed, "mag": ekf.on_mag}
+    for event in events:
+        handlers[event.kind](event.msg, event.t_ns)
+        if on_event is not None:
+            on_event(event)
+        newest = ekf.t_ns
+        if event.kind != "imu" or newest is None or event.t_ns < newest:
+            continue  # no estimate yet, or an IMU sample from before the filter started
+        k = (event.t_ns - T0_NS) // STEP_NS
+        state = ekf.state(event.t_ns)
+        P = ekf.P
+        asymmetry = max(asymmetry, float(np.max(np.abs(P - P.T))))
+        if k % 10 == 0:  # eigenvalues cost more than the rest of the loop: every 0.1 s is enough
+            min_eig = min(min_eig, float(np.linalg.eigvalsh(P)[0]))
+        cov = state.covariance
+        x = ekf.x
+        est[k] = (state.east_m, state.north_m, state.yaw_rad, state.speed_mps, cov[0] + cov[6], x[6], x[7])
+        quality[k] = state.quality
+    return Run(est[:, 0], est[:, 1], est[:, 2], est[:, 3], quality, est[:, 4], est[:, 5:7], asymmetry, min_eig)
+
+
+class Errors(NamedTuple):
+    position_m: np.ndarray
+    yaw_rad: np.ndarray
+    speed_mps: np.ndarray
+
+
+def errors(result: Run, truth: Sequence[Truth]) -> Errors:
+    """Estimate minus truth per sample (NaN where the filter had no estimate)."""
+    east = np.array([t.east_m for t in truth])
+    north = np.array([t.north_m for t in truth])
+    yaw = np.array([t.yaw_rad for t in truth])
+    speed = np.array([t.speed_mps for t in truth])
+    yaw_error = np.remainder(result.yaw_rad - yaw + math.pi, math.tau) - math.pi
+    return Errors(np.hypot(result.east_m - east, result.north_m - north), yaw_error, result.speed_mps - speed)
+
+
+def window(t0_s: float, t1_s: float) -> slice:
+    """Sample indices of [t0_s, t1_s)."""
+    return slice(round(t0_s * 100), round(t1_s * 100))
+
+
+def rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
