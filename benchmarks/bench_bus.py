@@ -30,7 +30,6 @@ import argparse
 import importlib.util
 import itertools
 import os
-import platform
 import signal
 import statistics
 import subprocess
@@ -53,7 +52,7 @@ from benchmarks.netns import (
     run_in_namespace,
     unavailable_reason,
 )
-from benchmarks.report import Table, print_table
+from benchmarks.report import Table, machine_line, print_table
 from protocol.auth import Keyring
 from protocol.transport import RECV_BUFFER_BYTES
 
@@ -304,27 +303,6 @@ def _verdict(ok: bool) -> str:
     return "PASS" if ok else "FAIL"
 
 
-def machine_line(where: str) -> str:
-    cores = os.cpu_count() or 0
-    usable = len(os.sched_getaffinity(0))
-    # Load from other work on the machine skews everything here; say how much there was.
-    load = os.getloadavg()[0]
-    return (
-        f"bus benchmark | Python {platform.python_version()} | {cores} cores ({usable} usable) | "
-        f"{_cpu_model()} | {platform.system()} {platform.release()} | load {load:.2f} at start | {where}"
-    )
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def size_line(rows: LatencyRows) -> str:
     size = rows[SIGNED].wire_bytes
     low, high = SIZE_RANGE
@@ -338,7 +316,7 @@ def size_line(rows: LatencyRows) -> str:
 def run_benchmark(where: str, lcm_skip: str | None, notes: list[str]) -> int:
     console = Console()
     log = Console(stderr=True)
-    machine = machine_line(where)
+    machine = machine_line("bus", where)
     with tempfile.TemporaryDirectory(prefix="rascal-bench-lcm-") as tmp:
         lcm_types = None
         if lcm_skip is None:

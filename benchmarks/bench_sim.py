@@ -19,20 +19,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import random
 import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 
-from benchmarks.report import Table, print_table
+from benchmarks.report import Table, machine_line, print_table
 from modules.sim.collision import Pose, clearance_m, collides, footprint
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.simulator import WorldState
@@ -293,24 +290,6 @@ def acceptance(rows: list[Row]) -> tuple[str, str]:
     return verdict, f"one simulator step (dynamics + collisions vs 100 obstacles) < 1 ms at 100 Hz: {detail}"
 
 
-def machine_line() -> str:
-    # Load from other work on the machine skews every row; say how much there was.
-    return (
-        f"simulator benchmark | Python {platform.python_version()} | {os.cpu_count() or 0} cores | "
-        f"{_cpu_model()} | {platform.system()} {platform.release()} | load {os.getloadavg()[0]:.2f} at start"
-    )
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def _say(console: Console, text: str) -> None:
     # Verbatim and unwrapped: these lines are read in logs as often as on a terminal.
     console.print(text, markup=False, highlight=False, soft_wrap=True)
@@ -323,7 +302,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.samples < 100:
         parser.error("--samples must be at least 100 for a p99")
     console = Console()
-    machine = machine_line()
+    machine = machine_line("simulator")
     rows, notes = measure(args.samples)
     _say(console, "\n".join([machine, *notes, ""]))
     table = Table(

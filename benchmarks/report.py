@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import platform
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table as RichTable
@@ -50,3 +53,28 @@ def _plain(table: Table) -> str:
 
     rule = "-" * len(line(table.columns))
     return "\n".join([table.title, line(table.columns), rule, *map(line, table.rows), ""])
+
+
+def machine_line(benchmark: str, where: str = "") -> str:
+    """One header line naming the machine; load from other work skews every row, so say how much."""
+    cores = os.cpu_count() or 0
+    usable = len(os.sched_getaffinity(0))
+    parts = [
+        f"{benchmark} benchmark",
+        f"Python {platform.python_version()}",
+        f"{cores} cores ({usable} usable)",
+        _cpu_model(),
+        f"{platform.system()} {platform.release()}",
+        f"load {os.getloadavg()[0]:.2f} at start",
+    ]
+    return " | ".join([*parts, where] if where else parts)
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
