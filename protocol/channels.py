@@ -26,6 +26,9 @@ LANE_BORDERS = "LANE_BORDERS"
 PATH = "PATH"
 ACTUATOR_COMMAND = "ACTUATOR_COMMAND"
 SIM_TRUTH = "SIM_TRUTH"
+CONFIG = "CONFIG"
+STOP = "STOP"
+MAP_SNAPSHOT = "MAP_SNAPSHOT"
 
 CHANNEL_TYPES: dict[str, type] = {
     TIME_SYNC: m.TimeSync,
@@ -44,6 +47,9 @@ CHANNEL_TYPES: dict[str, type] = {
     PATH: m.Path,
     ACTUATOR_COMMAND: m.ActuatorCommand,
     SIM_TRUTH: m.SimTruth,
+    CONFIG: m.ConfigUpdate,
+    STOP: m.StopCommand,
+    MAP_SNAPSHOT: m.MapSnapshot,
 }
 
 DEFAULT_PORT_SPAN = 16

@@ -60,6 +60,15 @@ class TimeSyncKind(enum.IntEnum):
     REPLY = 1
 
 
+class StopMode(enum.IntEnum):
+    """Operator stop channel: RUN drives, PAUSE holds the vehicle stopped until RUN, ESTOP stops
+    and stays stopped until the process restarts (DARPA's e-stop had the same two levels)."""
+
+    RUN = 0
+    PAUSE = 1
+    ESTOP = 2
+
+
 @message(type_id=1)
 class TimeSync(NamedTuple):
     """NTP-style exchange. A client sends REQUEST with t1 (its local clock); the master answers
@@ -99,6 +108,16 @@ class HealthEvent(NamedTuple):
     severity: int
     code: str
     text: str
+
+
+@message(type_id=4)
+class ConfigUpdate(NamedTuple):
+    """Change one setting of a running module (``module`` is its name or ``name/instance``);
+    ``value`` is text parsed by that setting's type, as on the command line (``--set key=value``)."""
+
+    module: str
+    key: str
+    value: str
 
 
 @message(type_id=10)
@@ -233,6 +252,28 @@ class ActuatorCommand(NamedTuple):
     brake: float
     steering_rad: float
     stop_reason: str = ""
+
+
+@message(type_id=32)
+class StopCommand(NamedTuple):
+    """E-stop / pause, honoured by control at once; ``mode`` is a StopMode."""
+
+    mode: int
+    reason: str
+
+
+@message(type_id=40)
+class MapSnapshot(NamedTuple):
+    """The brain's bird's-eye map, low rate, for viewing and logs. ``cells`` is ``rows x cols``
+    uint8 row-major (row 0 south, column 0 west) of hazard probability x 255, zlib-compressed;
+    cell (r, c) has its south-west corner at (origin_east_m + c*res, origin_north_m + r*res)."""
+
+    origin_east_m: float
+    origin_north_m: float
+    resolution_m: float
+    rows: int
+    cols: int
+    cells: bytes
 
 
 @message(type_id=90)

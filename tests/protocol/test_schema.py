@@ -23,6 +23,7 @@ GOLDEN: dict[int, tuple[str, str]] = {
     1: ("TimeSync", "989ed9c660e9faf8"),
     2: ("ModuleStatus", "4a409f2def006a81"),
     3: ("HealthEvent", "862133c3f7431b67"),
+    4: ("ConfigUpdate", "4d3e3bc247c2030a"),
     10: ("ImuSample", "5e9a35ebcb95e93b"),
     11: ("GpsFix", "dd830c13e945f763"),
     12: ("WheelSpeed", "24c5300df6fb3739"),
@@ -33,6 +34,8 @@ GOLDEN: dict[int, tuple[str, str]] = {
     23: ("LaneBorders", "8ff4b3d6abcaa405"),
     30: ("Path", "87456c6d3741de56"),
     31: ("ActuatorCommand", "c06cc43844c9b5e0"),
+    32: ("StopCommand", "3b3c936b4632a3d6"),
+    40: ("MapSnapshot", "e05fe0c760424aea"),
     90: ("SimTruth", "9b774763b7816aa9"),
 }
 
@@ -343,7 +346,7 @@ def test_a_body_that_is_not_a_field_array_is_bad_body(body: Any) -> None:
 
 def test_an_unknown_type_id_is_unknown_type() -> None:
     """A type id nobody registered is UNKNOWN_TYPE, from the registry and from decode_body."""
-    for type_id in (0, 4, 999, 0xFFFF):
+    for type_id in (0, 5, 999, 0xFFFF):
         with pytest.raises(ProtocolError) as caught:
             decode_body(type_id, pack([1.0, 2.0]), source_id=9)
         assert caught.value.reason is Reason.UNKNOWN_TYPE

@@ -11,6 +11,7 @@ import hashlib
 import itertools
 import math
 import typing
+import zlib
 from typing import Any
 
 from protocol import channels
@@ -121,6 +122,10 @@ SAMPLES: list[Any] = [
     m.Path(982, (), True),
     m.ActuatorCommand(throttle=0.35, brake=0.0, steering_rad=-0.12),
     m.ActuatorCommand(0.0, 1.0, 0.0, "ESTOP: obstacle at 3.1 m"),
+    m.ConfigUpdate(module="esvs", key="round_period_s", value="0.033"),
+    m.StopCommand(mode=m.StopMode.PAUSE, reason="operator"),
+    m.StopCommand(m.StopMode.ESTOP, ""),
+    m.MapSnapshot(-60.0, -15.0, 0.2, 2, 3, zlib.compress(bytes([0, 10, 255, 0, 0, 128]))),
     m.SimTruth(
         east_m=1523.9,
         north_m=-402.0,
