@@ -1,0 +1,1 @@
+"""ESVS: the stereo vision system (simulated cameras, vision pipeline, real-time round, watchdog)."""
