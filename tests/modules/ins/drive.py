@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from brain.corridor import GeodeticOrigin
-from modules.ins.ekf import InsEkf
+from modules.ins.navigator import InsFilter
 from modules.nav_sensors.models import (
     MAGNETOMETER_1,
     MAGNETOMETER_2,
@@ -150,7 +150,7 @@ class Run(NamedTuple):
     min_eigenvalue: float  # smallest eigenvalue of P seen
 
 
-def run(ekf: InsEkf, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
+def run(ekf: InsFilter, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
     """Feed ``events`` to ``ekf`` and read its estimate after every IMU sample."""
     est = np.full((samples, 7), np.nan)
     quality = np.zeros(samples, dtype=int)

@@ -1,27 +1,8 @@
-"""A planar navigation EKF: IMU-driven prediction, DGPS, speedometer and magnetometer updates.
+"""The navigation filter: IMU-driven prediction, DGPS, speedometer and magnetometer updates,
+applied at their measurement times, gated, with the books kept.
 
 Sans-IO: messages and their measurement times go in, ``VehicleState`` comes out; no clock, no bus.
-
-State (``x``, 9 entries; indices below)::
-
-    east_m, north_m     rear-axle reference point in the deployment's ENU frame
-    yaw_rad             counter-clockwise from east
-    speed_mps           along the body x axis
-    gyro_bias_radps     z-gyro bias
-    speed_scale         speedometer reading / true speed (tyre radius error)
-    mag1_bias_rad       magnetometer 1's heading bias (clockwise from north, as it reports)
-    mag2_bias_rad       magnetometer 2's heading bias
-    accel_bias_mps2     x-accelerometer bias
-
-Filter: filterpy's ``ExtendedKalmanFilter``; its ``predict`` (``P = F P F' + Q``) and its Joseph
-form ``update`` run with our own Jacobians F and H and noises Q and R. ``predict_x`` is overridden
-by the nonlinear motion model.
-
-Motion model: yaw integrates the bias-corrected gyro, speed the bias-corrected accelerometer, and
-the position moves *along the yaw* over the mid-step heading. That is the no-sideslip constraint,
-built into the model rather than applied as a pseudo-measurement: the vehicle is a kinematic
-bicycle about the rear axle (modules/sim/vehicle.py), so its velocity has no lateral component
-and the lateral accelerometer (centripetal, v * yaw rate) carries no new information.
+The model is modules/ins/model.py; the estimator (EKF or UKF, both filterpy) is modules/ins/cores.py.
 
 Measurement time: every IMU step is kept for ``history_s`` with its posterior and the
 measurements applied inside it. A measurement older than the newest state rewinds to the step
@@ -42,56 +23,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pymap3d
-from filterpy.kalman import ExtendedKalmanFilter
 
 from brain.corridor import GeodeticOrigin
+from modules.ins.cores import make_core
+from modules.ins.model import (
+    BG,
+    BIAS_OF_MAG,
+    DIM_X,
+    SCALE,
+    SPD,
+    YAW,
+    E,
+    ImuInput,
+    InsParams,
+    N,
+    process_noise_rate,
+    propagate,
+    transition,
+    wrap,
+)
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, VehicleState, WheelSpeed
 
-E, N, YAW, SPD, BG, SCALE, BM1, BM2, BA = range(9)
-DIM_X = 9
-_BIAS_OF_MAG = {1: BM1, 2: BM2}
-DEG_PER_H = math.radians(1.0) / 3600.0
-MILLI_G = 9.80665e-3
-PER_SQRT_H = 1.0 / 60.0  # a coefficient per sqrt(hour) is this times the same per sqrt(second)
-CHI2_2DOF_999 = 13.816  # 99.9 % point of chi-square with 2 degrees of freedom
 UNINITIALISED_VARIANCE = 1e12  # what state() reports before the filter has a solution
-
-
-@dataclass(frozen=True)
-class InsParams:
-    """Noise and behaviour settings. Sensor noises are nominal datasheet values of the sensors
-    (a tactical IMU, a 1-2 % tyre scale, fluxgate compasses a few degrees off); process noises of
-    constant quantities are small but non-zero so the filter can still follow slow drift."""
-
-    gyro_arw_radps_per_sqrt_hz: float = math.radians(0.2) * PER_SQRT_H
-    accel_vrw_mps2_per_sqrt_hz: float = 0.07 * PER_SQRT_H
-    gyro_bias_walk_radps_per_sqrt_s: float = 1.0 * DEG_PER_H / math.sqrt(150.0)  # ~1 deg/h over 300 s
-    accel_bias_walk_mps2_per_sqrt_s: float = 0.1 * MILLI_G / math.sqrt(150.0)
-    speed_scale_walk_per_sqrt_s: float = 1e-6
-    mag_bias_walk_rad_per_sqrt_s: float = 1e-6
-    position_walk_m_per_sqrt_s: float = 0.01  # what the planar model leaves out (bumps, lever arms)
-    speedometer_std_mps: float = 0.05
-    initial_gyro_bias_std_radps: float = 10.0 * DEG_PER_H
-    initial_accel_bias_std_mps2: float = 2.0 * MILLI_G
-    initial_speed_scale_std: float = 0.03
-    initial_mag_bias_std_rad: float = math.radians(5.0)
-    initial_speed_std_mps: float = 1.0  # from an uncalibrated speedometer
-    unknown_speed_std_mps: float = 10.0  # no speedometer reading at initialisation
-    gps_gate_chi2: float = CHI2_2DOF_999
-    reacquire_after_s: float = 10.0  # longer than the few-second jumps a DGPS makes
-    reacquire_min_rejections: int = 20
-    reacquire_position_variance_scale: float = 25.0  # 5x the fix's std: the jump may still be settling
-    gps_timeout_s: float = 1.0  # without an accepted fix for this long the solution is dead reckoning
-    history_s: float = 0.5  # how late a measurement may arrive and still be used
-
-
-@dataclass(frozen=True)
-class _ImuInput:
-    """One IMU interval: bias-uncorrected rate and specific force held over ``dt_s``."""
-
-    gyro_z_radps: float
-    accel_x_mps2: float
-    dt_s: float
 
 
 @dataclass
@@ -117,104 +70,7 @@ class _Step:
     measurements: list[_Measurement] = field(default_factory=list)
 
 
-def wrap(angle_rad: float) -> float:
-    """``angle_rad`` wrapped into [-pi, pi]."""
-    return math.remainder(angle_rad, math.tau)
-
-
-def propagate(x: np.ndarray, u: _ImuInput) -> np.ndarray:
-    """The state after ``u``: turn and accelerate, then move along the mid-step heading."""
-    dt = u.dt_s
-    rate = u.gyro_z_radps - x[BG]
-    accel = u.accel_x_mps2 - x[BA]
-    mean_speed = x[SPD] + 0.5 * accel * dt
-    heading = x[YAW] + 0.5 * rate * dt
-    out = x.copy()
-    out[E] += mean_speed * dt * math.cos(heading)
-    out[N] += mean_speed * dt * math.sin(heading)
-    out[YAW] = wrap(x[YAW] + rate * dt)
-    out[SPD] += accel * dt
-    return out
-
-
-def process_noise_rate(params: InsParams) -> np.ndarray:
-    """Diagonal of the process noise per second, in state order: white noise densities squared."""
-    p = params
-    return np.array(
-        [
-            p.position_walk_m_per_sqrt_s**2,
-            p.position_walk_m_per_sqrt_s**2,
-            p.gyro_arw_radps_per_sqrt_hz**2,
-            p.accel_vrw_mps2_per_sqrt_hz**2,
-            p.gyro_bias_walk_radps_per_sqrt_s**2,
-            p.speed_scale_walk_per_sqrt_s**2,
-            p.mag_bias_walk_rad_per_sqrt_s**2,
-            p.mag_bias_walk_rad_per_sqrt_s**2,
-            p.accel_bias_walk_mps2_per_sqrt_s**2,
-        ]
-    )
-
-
-def transition(x: np.ndarray, u: _ImuInput, q_rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Jacobian F of ``propagate`` at ``x`` and the process noise Q of the interval, from the
-    per-second noise ``q_rate`` (``process_noise_rate``)."""
-    dt = u.dt_s
-    accel = u.accel_x_mps2 - x[BA]
-    mean_speed = x[SPD] + 0.5 * accel * dt
-    heading = x[YAW] + 0.5 * (u.gyro_z_radps - x[BG]) * dt
-    c, s = math.cos(heading), math.sin(heading)
-    F = np.eye(DIM_X)
-    F[E, YAW], F[N, YAW] = -mean_speed * dt * s, mean_speed * dt * c
-    F[E, SPD], F[N, SPD] = dt * c, dt * s
-    F[E, BG], F[N, BG] = 0.5 * mean_speed * dt * dt * s, -0.5 * mean_speed * dt * dt * c
-    F[E, BA], F[N, BA] = -0.5 * dt * dt * c, -0.5 * dt * dt * s
-    F[YAW, BG] = -dt
-    F[SPD, BA] = -dt
-    return F, np.diag(q_rate * dt)
-
-
-class _PlanarEkf(ExtendedKalmanFilter):
-    """filterpy's EKF with the nonlinear motion model as its state prediction."""
-
-    def predict_x(self, u: _ImuInput) -> None:  # type: ignore[override]
-        self.x = propagate(self.x, u)
-
-
-def _gps_h(x: np.ndarray) -> np.ndarray:
-    H = np.zeros((2, DIM_X))
-    H[0, E] = H[1, N] = 1.0
-    return H
-
-
-def _gps_hx(x: np.ndarray) -> np.ndarray:
-    return x[[E, N]]
-
-
-def _speed_h(x: np.ndarray) -> np.ndarray:
-    H = np.zeros((1, DIM_X))
-    H[0, SPD], H[0, SCALE] = x[SCALE], x[SPD]
-    return H
-
-
-def _speed_hx(x: np.ndarray) -> np.ndarray:
-    return np.array([x[SCALE] * x[SPD]])
-
-
-def _mag_h(x: np.ndarray, bias: int) -> np.ndarray:
-    H = np.zeros((1, DIM_X))
-    H[0, YAW], H[0, bias] = -1.0, 1.0
-    return H
-
-
-def _mag_hx(x: np.ndarray, bias: int) -> np.ndarray:
-    return np.array([math.pi / 2 - x[YAW] + x[bias]])
-
-
-def _angle_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([wrap(float(a[0] - b[0]))])
-
-
-class InsEkf:
+class InsFilter:
     """The navigation filter. Feed every message with its measurement time; read ``state``.
 
     It initialises at the first GPS fix once a magnetometer heading is known (yaw comes from the
@@ -225,11 +81,12 @@ class InsEkf:
     ``ahead_rejected`` (measurements more than the history ahead of the newest IMU sample).
     """
 
-    def __init__(self, origin: GeodeticOrigin, params: InsParams | None = None) -> None:
+    def __init__(self, origin: GeodeticOrigin, params: InsParams | None = None, kind: str = "ekf") -> None:
         self.origin = origin
         self.params = params or InsParams()
+        self.kind = kind
         self._q_rate = process_noise_rate(self.params)
-        self._ekf = _PlanarEkf(dim_x=DIM_X, dim_z=1)
+        self._core = make_core(kind, self.params)
         self._history: list[_Step] = []
         self._pending: list[_Measurement] = []
         # The latest speed and headings with their times, for initialisation.
@@ -259,12 +116,12 @@ class InsEkf:
     @property
     def x(self) -> np.ndarray:
         """The newest state estimate (a copy)."""
-        return self._ekf.x.copy()
+        return self._core.x.copy()
 
     @property
     def P(self) -> np.ndarray:
         """The newest state covariance (a copy)."""
-        return self._ekf.P.copy()
+        return self._core.P.copy()
 
     # ----- inputs
 
@@ -308,7 +165,7 @@ class InsEkf:
 
     def on_mag(self, msg: MagHeading, t_ns: int) -> None:
         """A compass heading: pi/2 - yaw + that unit's bias, compared on the circle."""
-        if msg.magnetometer not in _BIAS_OF_MAG:
+        if msg.magnetometer not in BIAS_OF_MAG:
             return
         self._last_mag[msg.magnetometer] = (t_ns, msg)
         if self._history:
@@ -340,7 +197,7 @@ class InsEkf:
         imu = self._history[min(index + 1, len(self._history) - 1)].imu or step.imu
         x, P = step.x, step.P
         if imu is not None and t_ns > step.t_ns:
-            u = _ImuInput(imu.gyro_z_radps, imu.accel_x_mps2, (t_ns - step.t_ns) / 1e9)
+            u = ImuInput(imu.gyro_z_radps, imu.accel_x_mps2, (t_ns - step.t_ns) / 1e9)
             F, Q = transition(x, u, self._q_rate)
             P = F @ P @ F.T + Q
             x, P = propagate(x, u), 0.5 * (P + P.T)
@@ -406,9 +263,9 @@ class InsEkf:
                 p.initial_accel_bias_std_mps2**2,
             ]
         )
-        b = _BIAS_OF_MAG[mag.magnetometer]
+        b = BIAS_OF_MAG[mag.magnetometer]
         P[YAW, b] = P[b, YAW] = -bias_var  # yaw0 = yaw - bias + noise: its error is minus the bias
-        self._ekf.x, self._ekf.P = x, P
+        self._core.x, self._core.P = x, P
         self._history = [_Step(fix.t_ns, None, x.copy(), P.copy())]
         self._accept_gps(fix)
 
@@ -437,10 +294,10 @@ class InsEkf:
         if step.t_ns == m.t_ns:
             # At a step's own time the measurement goes after everything in it: no re-run of the
             # step is needed, only of the later ones (none in the common, in-order case).
-            self._ekf.x, self._ekf.P = step.x.copy(), step.P.copy()
+            self._core.x, self._core.P = step.x.copy(), step.P.copy()
             if self._apply(m, gate=True):
                 step.measurements.append(m)
-            step.x, step.P = self._ekf.x.copy(), self._ekf.P.copy()
+            step.x, step.P = self._core.x.copy(), self._core.P.copy()
         elif index == 0:
             self.late_rejected += 1  # older than the history: nothing to rewind to
             return
@@ -460,7 +317,7 @@ class InsEkf:
         time order, apply it, predict to the step's end. ``new`` is gated; kept ones are not."""
         prev, step = self._history[index - 1], self._history[index]
         assert step.imu is not None
-        self._ekf.x, self._ekf.P = prev.x.copy(), prev.P.copy()
+        self._core.x, self._core.P = prev.x.copy(), prev.P.copy()
         measurements = sorted([*step.measurements, *([new] if new else [])], key=lambda o: o.t_ns)
         kept: list[_Measurement] = []
         t_ns = prev.t_ns
@@ -471,7 +328,7 @@ class InsEkf:
                 kept.append(m)
         self._predict(step.imu, step.t_ns - t_ns)
         step.measurements = kept
-        step.x, step.P = self._ekf.x.copy(), self._ekf.P.copy()
+        step.x, step.P = self._core.x.copy(), self._core.P.copy()
 
     def _trim_history(self) -> None:
         horizon_ns = self._history[-1].t_ns - self.params.history_s * 1e9
@@ -486,35 +343,32 @@ class InsEkf:
     def _predict(self, imu: ImuSample, dt_ns: int) -> None:
         if dt_ns <= 0:
             return
-        u = _ImuInput(imu.gyro_z_radps, imu.accel_x_mps2, dt_ns / 1e9)
-        self._ekf.F, self._ekf.Q = transition(self._ekf.x, u, self._q_rate)
-        self._ekf.predict(u)
+        self._core.predict(ImuInput(imu.gyro_z_radps, imu.accel_x_mps2, dt_ns / 1e9))
         self._normalise()
 
     def _apply(self, m: _Measurement, gate: bool) -> bool:
         """Update with ``m``; False if the GPS gate rejected it."""
-        ekf = self._ekf
+        core = self._core
         if m.kind == "gps":
             return self._gps(m, gate)
         if m.kind == "speed":
-            ekf.update(m.z, _speed_h, _speed_hx, R=m.R)
+            core.update_speed(m.z, m.R)
         else:
-            bias = _BIAS_OF_MAG[m.mag_index]
-            ekf.update(m.z, _mag_h, _mag_hx, R=m.R, args=(bias,), hx_args=(bias,), residual=_angle_residual)
+            core.update_mag(m.z, m.R, BIAS_OF_MAG[m.mag_index])
         self._normalise()
         return True
 
     def _gps(self, m: _Measurement, gate: bool) -> bool:
         """Gate a new fix (and keep the books on it); a replayed one was accepted already."""
-        ekf = self._ekf
+        core = self._core
         if gate:
-            innovation = m.z - ekf.x[[E, N]]
-            S = ekf.P[np.ix_([E, N], [E, N])] + m.R
+            innovation = m.z - core.x[[E, N]]
+            S = core.P[np.ix_([E, N], [E, N])] + m.R
             if float(innovation @ np.linalg.solve(S, innovation)) > self.params.gps_gate_chi2:
                 self._reject_gps(m)
                 return False
             self._accept_gps(m)
-        ekf.update(m.z, _gps_h, _gps_hx, R=m.R)
+        core.update_gps(m.z, m.R)
         self._normalise()
         return True
 
@@ -538,12 +392,12 @@ class InsEkf:
 
     def _reacquire(self, m: _Measurement) -> None:
         """Reset the position to the fix, uncorrelated, with its covariance inflated."""
-        ekf = self._ekf
-        ekf.x[[E, N]] = m.z
+        core = self._core
+        core.x[[E, N]] = m.z
         for i in (E, N):
-            ekf.P[i, :] = 0.0
-            ekf.P[:, i] = 0.0
-        ekf.P[np.ix_([E, N], [E, N])] = m.R * self.params.reacquire_position_variance_scale
+            core.P[i, :] = 0.0
+            core.P[:, i] = 0.0
+        core.P[np.ix_([E, N], [E, N])] = m.R * self.params.reacquire_position_variance_scale
         self.reacquisitions += 1
         self._reacquired = True
         self._accept_gps(m)
@@ -551,6 +405,6 @@ class InsEkf:
     def _normalise(self) -> None:
         """Yaw back into [-pi, pi] (an update can push it over) and P exactly symmetric (round-off
         in F P F' and the Joseph form leaves it asymmetric in the last bits, which accumulates)."""
-        ekf = self._ekf
-        ekf.x[YAW] = wrap(ekf.x[YAW])
-        ekf.P = 0.5 * (ekf.P + ekf.P.T)
+        core = self._core
+        core.x[YAW] = wrap(core.x[YAW])
+        core.P = 0.5 * (core.P + core.P.T)

@@ -1,5 +1,5 @@
-"""The navigation EKF on simulated drives: accuracy with GPS, through outages and jumps, late and
-out-of-order measurements, covariance health, and cost per IMU step."""
+"""The navigation filter (both estimators) on simulated drives: accuracy with GPS, through outages
+and jumps, late and out-of-order measurements, covariance health."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from modules.ins.ekf import InsEkf
+from modules.ins.cores import FILTERS
+from modules.ins.navigator import InsFilter
 from modules.sim.world import SensorFault
 from protocol.messages import NavQuality
 from tests.modules.ins import drive as sim
@@ -21,22 +22,22 @@ OUTAGE_START_S, OUTAGE_END_S, OUTAGE_RUN_S = 120.0, 300.0, 330.0
 
 class Result(NamedTuple):
     drive: Drive
-    ekf: InsEkf
+    filter: InsFilter
     run: Run
     errors: Errors
 
 
-def simulate(duration_s: float, seed: int, faults: Sequence[SensorFault] = ()) -> Result:
+def simulate(duration_s: float, seed: int, faults: Sequence[SensorFault] = (), kind: str = "ekf") -> Result:
     drive = sim.drive(duration_s, seed, faults)
-    ekf = InsEkf(sim.ORIGIN)
-    run = sim.run(ekf, drive.events, len(drive.truth))
-    return Result(drive, ekf, run, sim.errors(run, drive.truth))
+    nav = InsFilter(sim.ORIGIN, kind=kind)
+    run = sim.run(nav, drive.events, len(drive.truth))
+    return Result(drive, nav, run, sim.errors(run, drive.truth))
 
 
-@pytest.fixture(scope="module")
-def outage() -> Result:
+@pytest.fixture(scope="module", params=FILTERS)
+def outage(request: pytest.FixtureRequest) -> Result:
     """Two minutes with GPS, three without at 10 m/s, then GPS again."""
-    return simulate(OUTAGE_RUN_S, seed=1, faults=[sim.gps_outage(OUTAGE_START_S, OUTAGE_END_S)])
+    return simulate(OUTAGE_RUN_S, seed=1, faults=[sim.gps_outage(OUTAGE_START_S, OUTAGE_END_S)], kind=request.param)
 
 
 def assert_covariance_healthy(run: Run) -> None:
@@ -83,9 +84,10 @@ def test_magnetometer_bias_learned_with_gps_is_kept_through_outage(outage: Resul
     assert np.allclose(end, before, atol=0.05)
 
 
-def test_a_20_m_jump_is_rejected_counted_and_ignored() -> None:
-    result = simulate(70.0, seed=2, faults=[sim.gps_jump(40.0, 44.0, 20.0)])
-    ekf, run = result.ekf, result.run
+@pytest.mark.parametrize("kind", FILTERS)
+def test_a_20_m_jump_is_rejected_counted_and_ignored(kind: str) -> None:
+    result = simulate(70.0, seed=2, faults=[sim.gps_jump(40.0, 44.0, 20.0)], kind=kind)
+    ekf, run = result.filter, result.run
     assert ekf.gps_rejected == 40  # every fix of the 4 s jump, and no other
     assert ekf.reacquisitions == 0
     assert np.max(result.errors.position_m[sim.window(30.0, 70.0)]) <= 0.3
@@ -94,12 +96,12 @@ def test_a_20_m_jump_is_rejected_counted_and_ignored() -> None:
     assert_covariance_healthy(run)
 
 
-@pytest.mark.parametrize("late_gps_ns", [0, 250_000_000])
-def test_a_persistent_offset_is_reacquired(late_gps_ns: int) -> None:
+@pytest.mark.parametrize(("kind", "late_gps_ns"), [("ekf", 0), ("ekf", 250_000_000), ("ukf", 250_000_000)])
+def test_a_persistent_offset_is_reacquired(kind: str, late_gps_ns: int) -> None:
     """Also with every fix 250 ms late: then each is gated, and the re-acquisition made, in the
     state rewound to its time."""
     drive = sim.drive(90.0, seed=3, faults=[sim.gps_jump(40.0, 100.0, 20.0)])
-    ekf = InsEkf(sim.ORIGIN)
+    ekf = InsFilter(sim.ORIGIN, kind=kind)
     run = sim.run(ekf, sim.delay(drive.events, {"gps": late_gps_ns}), len(drive.truth))
     result = Result(drive, ekf, run, sim.errors(run, drive.truth))
     assert ekf.reacquisitions == 1
@@ -117,8 +119,8 @@ def short_drive() -> Drive:
     return sim.drive(40.0, seed=4)
 
 
-def final_x(events: list[sim.Event], samples: int) -> tuple[InsEkf, np.ndarray]:
-    ekf = InsEkf(sim.ORIGIN)
+def final_x(events: list[sim.Event], samples: int) -> tuple[InsFilter, np.ndarray]:
+    ekf = InsFilter(sim.ORIGIN)
     sim.run(ekf, events, samples)
     return ekf, ekf.x
 
@@ -152,7 +154,7 @@ def test_measurements_ahead_of_the_imu_wait_for_it(short_drive: Drive) -> None:
 
 
 def test_measurements_too_old_or_too_far_ahead_are_rejected(short_drive: Drive) -> None:
-    ekf = InsEkf(sim.ORIGIN)
+    ekf = InsFilter(sim.ORIGIN)
     sim.run(ekf, short_drive.events, len(short_drive.truth))
     before = ekf.x
     old_fix = next(e for e in reversed(short_drive.events) if e.kind == "gps" and e.t_ns <= sim.t_ns_at(39.0))
@@ -166,7 +168,7 @@ def test_measurements_too_old_or_too_far_ahead_are_rejected(short_drive: Drive) 
 
 
 def test_invalid_until_initialised_then_a_positive_definite_published_covariance(short_drive: Drive) -> None:
-    ekf = InsEkf(sim.ORIGIN)
+    ekf = InsFilter(sim.ORIGIN)
     assert ekf.state(sim.T0_NS).quality == NavQuality.INVALID
     imu = next(e for e in short_drive.events if e.kind == "imu")
     ekf.on_imu(imu.msg, imu.t_ns)
@@ -182,16 +184,18 @@ def test_invalid_until_initialised_then_a_positive_definite_published_covariance
             assert np.linalg.eigvalsh(cov)[0] > 0.0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", FILTERS)
 @pytest.mark.parametrize("seed", range(20))
-def test_never_diverges(seed: int) -> None:
+def test_never_diverges(seed: int, kind: str) -> None:
     """A 45 s drive per seed with a jump of seeded size and length and a 15 s outage."""
     rng = np.random.default_rng([seed, 99])
     jump_s = float(rng.uniform(8.0, 12.0))
     faults = [sim.gps_jump(jump_s, jump_s + float(rng.uniform(1.0, 5.0)), float(rng.uniform(5.0, 20.0)))]
-    result = simulate(45.0, seed=100 + seed, faults=[*faults, sim.gps_outage(20.0, 35.0)])
+    result = simulate(45.0, seed=100 + seed, faults=[*faults, sim.gps_outage(20.0, 35.0)], kind=kind)
     position = result.errors.position_m
     assert np.max(position[sim.window(5.0, 45.0)]) <= 0.5
     assert sim.rms(position[sim.window(38.0, 45.0)]) <= 0.3
     assert math.degrees(np.max(np.abs(result.errors.yaw_rad[sim.window(5.0, 45.0)]))) <= 1.0
-    assert result.ekf.reacquisitions == 0
+    assert result.filter.reacquisitions == 0
     assert_covariance_healthy(result.run)
