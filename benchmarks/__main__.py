@@ -10,6 +10,7 @@ MODULES = [
     "benchmarks.bench_bus",
     "benchmarks.bench_sim",
     "benchmarks.bench_lidar",
+    "benchmarks.bench_ins",
 ]
 
 

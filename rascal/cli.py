@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
 from brain.rddf_cli import add_rddf_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
+
+# Tools with their own argument parsers: `rascal GROUP TOOL ...` hands the rest to MODULE.main.
+DELEGATED_TOOLS: dict[tuple[str, str], tuple[str, str]] = {
+    ("ins", "accuracy"): ("modules.nav_sensors.accuracy", "replay a scenario through the navigation filters"),
+    ("esvs", "eval"): ("modules.esvs.evaluate", "stereo accuracy on a pair with ground truth"),
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -22,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         run_module(module_class(argv[1]), argv[2:])
         return 0
+    if tuple(argv[:2]) in DELEGATED_TOOLS:
+        target, _ = DELEGATED_TOOLS[(argv[0], argv[1])]
+        return int(importlib.import_module(target).main(argv[2:]))
     args = build_parser().parse_args(argv)
     return args.handler(args)
 
@@ -32,6 +42,11 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
 
     commands.add_parser("module", help="run one module process: rascal module NAME [options]")
+    groups: dict[str, argparse._SubParsersAction] = {}
+    for (group, tool), (_, help_text) in DELEGATED_TOOLS.items():
+        if group not in groups:
+            groups[group] = commands.add_parser(group, help=f"{group} tools").add_subparsers(dest="tool", required=True)
+        groups[group].add_parser(tool, help=f"{help_text} (rascal {group} {tool} --help)")
 
     demo = commands.add_parser(
         "demo", help="the simulated vehicle with every sensor on the loopback bus, and a lidar failure"

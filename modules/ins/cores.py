@@ -19,7 +19,9 @@ from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, Unscen
 from modules.ins.model import (
     BA,
     BG,
+    BIAS_OF_MAG,
     DIM_X,
+    SCALE,
     SPD,
     YAW,
     E,
@@ -160,18 +162,57 @@ def _unscented_transform(
     return mean, (residuals * Wc[:, None]).T @ residuals + noise_cov
 
 
+class _CholeskySigmaPoints(MerweScaledSigmaPoints):
+    """Van der Merwe's points from one numpy Cholesky factor, all at once (filterpy builds them
+    point by point behind SciPy's checked factorisation). Same points, same order, same weights."""
+
+    def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        lambda_ = self.alpha**2 * (self.n + self.kappa) - self.n
+        # filterpy spreads by the rows of the upper factor U (U'U = M): the columns of numpy's L.
+        offsets = np.linalg.cholesky((lambda_ + self.n) * P).T
+        return np.vstack([x, x + offsets, x - offsets])
+
+
 class _VectorisedUkf(UnscentedKalmanFilter):
-    """filterpy's UKF with its two per-sigma-point Python loops done as array operations: the
-    motion model on all points at once, and the cross covariance as one weighted product."""
+    """filterpy's UKF with its per-sigma-point Python loops done as array operations: the motion
+    model on all points at once, and an update whose measurement model takes all points too."""
 
     def compute_process_sigmas(self, dt: float, fx: object = None, **fx_args: object) -> None:
         sigmas = self.points_fn.sigma_points(self.x, self.P)
         self.sigmas_f = _propagate_sigmas(sigmas, fx_args["u"])  # type: ignore[arg-type]
 
-    def cross_variance(self, x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray) -> np.ndarray:
-        dx = _state_residual(sigmas_f, x)
-        dz = self.residual_z(sigmas_h, z)
-        return (dx * self.Wc[:, None]).T @ dz
+    def update_points(
+        self,
+        z: np.ndarray,
+        R: np.ndarray,
+        hx_points: Callable[[np.ndarray], np.ndarray],
+        residual: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        mean: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
+    ) -> None:
+        """The UKF update (filterpy's ``update``) with ``hx_points`` mapping every sigma point
+        (rows) to its predicted measurement at once. Points are redrawn at the current estimate:
+        several measurements may arrive between two predictions, each after the one before."""
+        sigmas = self.points_fn.sigma_points(self.x, self.P)
+        sigmas_h = hx_points(sigmas)
+        z_mean, S = _unscented_transform(sigmas_h, self.Wm, self.Wc, R, mean, residual)
+        dx = _state_residual(sigmas, self.x)
+        dz = residual(sigmas_h, z_mean)
+        cross = (dx * self.Wc[:, None]).T @ dz
+        gain = cross @ np.linalg.inv(S)
+        self.x = self.x + gain @ residual(z, z_mean)
+        self.P = self.P - gain @ S @ gain.T
+
+
+def _gps_points(sigmas: np.ndarray) -> np.ndarray:
+    return sigmas[:, [E, N]]
+
+
+def _speed_points(sigmas: np.ndarray) -> np.ndarray:
+    return (sigmas[:, SCALE] * sigmas[:, SPD])[:, np.newaxis]
+
+
+def _mag_points(bias_index: int) -> Callable[[np.ndarray], np.ndarray]:
+    return lambda sigmas: (math.pi / 2 - sigmas[:, YAW] + sigmas[:, bias_index])[:, np.newaxis]
 
 
 class UkfCore:
@@ -181,9 +222,9 @@ class UkfCore:
 
     def __init__(self, params: InsParams) -> None:
         self._q_rate = process_noise_rate(params)
-        # Plain subtraction to spread the points: a yaw just past +-pi is harmless, since means
-        # and residuals are taken on the circle.
-        points = MerweScaledSigmaPoints(DIM_X, self.ALPHA, self.BETA, self.KAPPA)
+        # Plain addition spreads the points: a yaw just past +-pi is harmless, since means and
+        # residuals are taken on the circle.
+        points = _CholeskySigmaPoints(DIM_X, self.ALPHA, self.BETA, self.KAPPA)
         self._ukf = _VectorisedUkf(
             dim_x=DIM_X,
             dim_z=1,
@@ -194,6 +235,7 @@ class UkfCore:
             x_mean_fn=_state_mean,
             residual_x=_state_residual,
         )
+        self._mag_points = {index: _mag_points(index) for index in BIAS_OF_MAG.values()}
 
     @property
     def x(self) -> np.ndarray:
@@ -218,26 +260,11 @@ class UkfCore:
         ukf.x[YAW] = wrap(float(ukf.x[YAW]))
 
     def update_gps(self, z: np.ndarray, R: np.ndarray) -> None:
-        self._update(z, R, gps_hx, np.subtract, None)
+        self._ukf.update_points(z, R, _gps_points, np.subtract, None)
 
     def update_speed(self, z: np.ndarray, R: np.ndarray) -> None:
-        self._update(z, R, speed_hx, np.subtract, None)
+        self._ukf.update_points(z, R, _speed_points, np.subtract, None)
 
     def update_mag(self, z: np.ndarray, R: np.ndarray, bias_index: int) -> None:
-        self._update(z, R, lambda x: mag_hx(x, bias_index), _angle_residuals, _angle_mean)
-
-    def _update(
-        self,
-        z: np.ndarray,
-        R: np.ndarray,
-        hx: Callable[[np.ndarray], np.ndarray],
-        residual: Callable[[np.ndarray, np.ndarray], np.ndarray],
-        mean: Callable[[np.ndarray, np.ndarray], np.ndarray] | None,
-    ) -> None:
-        """One update from sigma points drawn at the current estimate: several measurements may
-        arrive between two predictions, and each must see the posterior of the one before."""
-        ukf = self._ukf
-        ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
-        ukf.residual_z, ukf.z_mean = residual, mean
-        ukf.update(z, R=R, UT=_unscented_transform, hx=hx)
-        ukf.x[YAW] = wrap(float(ukf.x[YAW]))
+        self._ukf.update_points(z, R, self._mag_points[bias_index], _angle_residuals, _angle_mean)
+        self._ukf.x[YAW] = wrap(float(self._ukf.x[YAW]))

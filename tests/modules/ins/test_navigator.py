@@ -14,8 +14,8 @@ from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
 from modules.sim.world import SensorFault
 from protocol.messages import NavQuality
-from tests.modules.ins import drive as sim
-from tests.modules.ins.drive import Drive, Errors, Run
+from modules.nav_sensors import replay as sim
+from modules.nav_sensors.replay import Drive, Errors, Run
 
 OUTAGE_START_S, OUTAGE_END_S, OUTAGE_RUN_S = 120.0, 300.0, 330.0
 

@@ -1,9 +1,12 @@
-"""Test helper: a scripted drive through the sensor models, and a filter run over it.
+"""Offline replays for navigation: drive a simulated vehicle, measure it with the sensor models,
+feed a navigation filter the measurements in arrival order, and compare it with the truth.
 
-The vehicle (modules.sim.vehicle) holds 10 m/s on a repeating script of straights and
-left and right curves; each 100 Hz truth sample goes through the nav sensor models at the nav
-module's rates (IMU 100 Hz, GPS 10 Hz, speedometer 50 Hz, each magnetometer 20 Hz). Everything is
-offline and seeded: the same seed and faults give the same measurements.
+Each 100 Hz truth sample goes through the nav sensor models at the nav module's rates (IMU
+100 Hz, GPS 10 Hz, speedometer 50 Hz, each magnetometer 20 Hz). Everything is offline and
+seeded: the same seed, driver and faults give the same measurements. Two drivers: a scripted one
+(10 m/s on a repeating script of straights and left and right curves, for filter tests) and one
+that follows a scenario's route with pure pursuit on the true pose (for the accuracy tool).
+Lives beside the sensor models because, like them, it reads the simulator's truth.
 """
 
 from __future__ import annotations
@@ -11,12 +14,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from brain.corridor import GeodeticOrigin
-from modules.ins.navigator import InsFilter
+from brain.corridor import CoursePath, GeodeticOrigin
 from modules.nav_sensors.models import (
     MAGNETOMETER_1,
     MAGNETOMETER_2,
@@ -30,7 +32,8 @@ from modules.nav_sensors.models import (
 )
 from modules.sim.vehicle import VehicleParams, VehicleState, step
 from modules.sim.world import FaultKind, SensorFault
-from protocol.messages import ActuatorCommand
+from protocol.messages import ActuatorCommand, GpsFix, ImuSample, MagHeading, WheelSpeed
+from protocol.messages import VehicleState as NavState
 
 ORIGIN = GeodeticOrigin(35.0, -117.0, 700.0)
 STEP_NS = 10_000_000  # the simulator's 100 Hz
@@ -94,27 +97,90 @@ def steering_at(t_s: float) -> float:
     return 0.0
 
 
-def drive(duration_s: float, seed: int, faults: Sequence[SensorFault] = ()) -> Drive:
-    """Drive for ``duration_s`` and measure every step; ``seed`` fixes every sensor's noise."""
+Driver = Callable[[VehicleState, float], ActuatorCommand]
+
+
+class Navigator(Protocol):
+    """What a replay feeds and reads (modules.ins.navigator.InsFilter)."""
+
+    t_ns: int | None
+
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def P(self) -> np.ndarray: ...
+
+    def on_imu(self, msg: ImuSample, t_ns: int) -> None: ...
+
+    def on_gps(self, msg: GpsFix, t_ns: int) -> None: ...
+
+    def on_speed(self, msg: WheelSpeed, t_ns: int) -> None: ...
+
+    def on_mag(self, msg: MagHeading, t_ns: int) -> None: ...
+
+    def state(self, t_ns: int) -> NavState: ...
+
+
+def scripted_driver(vehicle: VehicleState, t_s: float) -> ActuatorCommand:
+    """Hold SPEED_MPS (cruise throttle plus a proportional hold) on the repeating SCRIPT."""
+    return ActuatorCommand(0.3 + 0.5 * (SPEED_MPS - vehicle.speed_mps), 0.0, steering_at(t_s))
+
+
+def route_driver(route: CoursePath, max_speed_mps: float, params: VehicleParams | None = None) -> Driver:
+    """Follow ``route`` by pure pursuit on the true pose at its speeds, capped at ``max_speed_mps``,
+    stopping at its end. Only offline tools may drive on truth like this."""
+    params = params or VehicleParams()
+    points = np.column_stack([route.east_m, route.north_m])
+    index = [0]
+
+    def driver(vehicle: VehicleState, _t_s: float) -> ActuatorCommand:
+        low = index[0]
+        near = points[low : low + 60]
+        index[0] = low + int(np.argmin(np.hypot(near[:, 0] - vehicle.east_m, near[:, 1] - vehicle.north_m)))
+        lookahead_m = 4.0 + 0.5 * vehicle.speed_mps
+        target = min(len(points) - 1, index[0] + round(lookahead_m / route.spacing_m))
+        dx, dy = points[target, 0] - vehicle.east_m, points[target, 1] - vehicle.north_m
+        alpha = math.atan2(dy, dx) - vehicle.yaw_rad
+        steering = math.atan2(2.0 * params.wheelbase_m * math.sin(alpha), max(math.hypot(dx, dy), 1e-3))
+        at_end = index[0] >= len(points) - 3
+        # The route's speed ahead (it starts from rest), but never below a crawl until the end.
+        speed = 0.0 if at_end else min(max_speed_mps, max(1.0, float(route.speed_mps[target])))
+        error = speed - vehicle.speed_mps
+        if error >= 0:
+            return ActuatorCommand(min(1.0, 0.3 + 0.5 * error), 0.0, steering)
+        return ActuatorCommand(0.0, min(1.0, -0.3 * error), steering)
+
+    return driver
+
+
+def drive(
+    duration_s: float,
+    seed: int,
+    faults: Sequence[SensorFault] = (),
+    driver: Driver = scripted_driver,
+    start: VehicleState | None = None,
+    origin: GeodeticOrigin = ORIGIN,
+) -> Drive:
+    """Drive for ``duration_s`` and measure every step; ``seed`` fixes every sensor's noise. By
+    default the scripted drive, starting at speed heading north-east (so the first minute is not
+    spent accelerating)."""
     params = VehicleParams()
     rngs = [np.random.default_rng([seed, i]) for i in range(5)]
     imu = ImuModel(ImuParams(), rngs[0], faults)
-    gps = GpsModel(GpsParams(), ORIGIN, rngs[1], faults)
+    gps = GpsModel(GpsParams(), origin, rngs[1], faults)
     speedometer = SpeedometerModel(SpeedometerParams(), rngs[2], faults)
     mags = (
         MagnetometerModel(1, MAGNETOMETER_1, rngs[3], faults),
         MagnetometerModel(2, MAGNETOMETER_2, rngs[4], faults),
     )
-    # Start at speed, heading north-east, so the first minute is not spent accelerating.
-    vehicle = VehicleState(yaw_rad=math.radians(40.0), speed_mps=SPEED_MPS)
+    vehicle = start or VehicleState(yaw_rad=math.radians(40.0), speed_mps=SPEED_MPS)
     truth: list[Truth] = []
     events: list[Event] = []
     for k in range(round(duration_s * 100) + 1):
         t_s = k * 0.01
         if k:
-            # Throttle near the cruise setting, plus a proportional hold on the speed.
-            throttle = 0.3 + 0.5 * (SPEED_MPS - vehicle.speed_mps)
-            step(vehicle, ActuatorCommand(throttle, 0.0, steering_at(t_s)), 0.01, params)
+            step(vehicle, driver(vehicle, t_s), 0.01, params)
         sample = Truth(vehicle.east_m, vehicle.north_m, vehicle.yaw_rad, vehicle.speed_mps, vehicle.yaw_rate_radps, t_s)
         truth.append(sample)
         t_ns = T0_NS + k * STEP_NS
@@ -150,27 +216,28 @@ class Run(NamedTuple):
     min_eigenvalue: float  # smallest eigenvalue of P seen
 
 
-def run(ekf: InsFilter, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
-    """Feed ``events`` to ``ekf`` and read its estimate after every IMU sample."""
+def run(nav: Navigator, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
+    """Feed ``events`` to ``nav`` and read its estimate after every IMU sample.
+    ``on_event`` sees each event after the filter did."""
     est = np.full((samples, 7), np.nan)
     quality = np.zeros(samples, dtype=int)
     asymmetry, min_eig = 0.0, math.inf
-    handlers = {"imu": ekf.on_imu, "gps": ekf.on_gps, "speed": ekf.on_speed, "mag": ekf.on_mag}
+    handlers = {"imu": nav.on_imu, "gps": nav.on_gps, "speed": nav.on_speed, "mag": nav.on_mag}
     for event in events:
         handlers[event.kind](event.msg, event.t_ns)
         if on_event is not None:
             on_event(event)
-        newest = ekf.t_ns
+        newest = nav.t_ns
         if event.kind != "imu" or newest is None or event.t_ns < newest:
             continue  # no estimate yet, or an IMU sample from before the filter started
         k = (event.t_ns - T0_NS) // STEP_NS
-        state = ekf.state(event.t_ns)
-        P = ekf.P
+        state = nav.state(event.t_ns)
+        P = nav.P
         asymmetry = max(asymmetry, float(np.max(np.abs(P - P.T))))
         if k % 10 == 0:  # eigenvalues cost more than the rest of the loop: every 0.1 s is enough
             min_eig = min(min_eig, float(np.linalg.eigvalsh(P)[0]))
         cov = state.covariance
-        x = ekf.x
+        x = nav.x
         est[k] = (state.east_m, state.north_m, state.yaw_rad, state.speed_mps, cov[0] + cov[6], x[6], x[7])
         quality[k] = state.quality
     return Run(est[:, 0], est[:, 1], est[:, 2], est[:, 3], quality, est[:, 4], est[:, 5:7], asymmetry, min_eig)
