@@ -1,0 +1,248 @@
+"""Deployment files: which modules run on which host, with what settings, on which bus.
+
+One TOML file per deployment (``deploy/localhost.toml`` is the default)::
+
+    [deployment]
+    name = "localhost"
+    bus = "udpm://239.255.76.67:7667?ttl=0"   # every module's bus URL
+    key_file = ""                             # empty: $RASCAL_KEY_FILE or the per-user key
+    scenario = "scenarios/mojave.toml"        # simulated modules' world (paths relative to this file)
+    course = "scenarios/mojave.rddf"          # the RDDF every ENU module plans and navigates in
+    origin = ""                               # "lat,lon[,alt]"; empty: the course's first waypoint
+
+    [hosts.brainbox]                          # optional; without hosts every module is local
+    address = "10.0.0.2"                      # informational (systemd units, docs)
+
+    [modules.lidar_h_left]                    # one table per process; the key is its label
+    module = "lidar"                          # package under modules/ (default: the label)
+    host = "brainbox"                         # required when hosts are declared
+    source_id = 21                            # default: the module's own
+    nice = 0                                  # scheduling: higher runs later (0..19)
+    heartbeat_timeout_s = 3.0                 # the supervisor restarts a module this quiet
+    set = { sensor = "lidar_h_left" }         # config overrides, as --set KEY=VALUE
+
+A module whose configuration has ``scenario``, ``course`` or ``origin`` settings gets the
+deployment's unless its ``set`` table overrides them, so every process shares one frame. Errors
+name the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rascal.config import ConfigError, build_config
+from rascal.launch import module_class
+
+DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[1] / "deploy" / "localhost.toml"
+SHARED_SETTINGS = ("scenario", "course", "origin")
+LOCALHOST = "localhost"
+
+
+class DeploymentError(ValueError):
+    """A deployment file that cannot be used; the message names the file and key."""
+
+
+@dataclass(frozen=True)
+class ModuleSpec:
+    label: str
+    module: str
+    host: str
+    source_id: int
+    nice: int = 0
+    heartbeat_timeout_s: float = 3.0
+    settings: dict[str, str] = field(default_factory=dict)
+
+    def arguments(self) -> list[str]:
+        """Command-line arguments after ``python -m modules.<module>`` (bus and key excluded)."""
+        args = ["--source-id", str(self.source_id)]
+        for key, value in self.settings.items():
+            args += ["--set", f"{key}={value}"]
+        return args
+
+
+@dataclass(frozen=True)
+class Deployment:
+    path: Path
+    name: str
+    bus: str
+    key_file: Path | None
+    scenario: Path | None
+    course: Path | None
+    origin: str
+    hosts: dict[str, str]  # name -> address
+    modules: tuple[ModuleSpec, ...]
+
+    def on_host(self, host: str) -> tuple[ModuleSpec, ...]:
+        if host not in self.hosts:
+            raise DeploymentError(f"{self.path}: no host {host!r}; hosts: {sorted(self.hosts)}")
+        return tuple(spec for spec in self.modules if spec.host == host)
+
+    def spec(self, label: str) -> ModuleSpec:
+        for spec in self.modules:
+            if spec.label == label:
+                return spec
+        raise KeyError(label)
+
+
+def load_deployment(path: str | Path = DEFAULT_DEPLOYMENT) -> Deployment:
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DeploymentError(f"{path}: deployment file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise DeploymentError(f"{path}: not valid TOML: {exc}") from exc
+    return _Parser(path).deployment(doc)
+
+
+class _Parser:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.base = path.resolve().parent
+
+    def fail(self, key: str, problem: str) -> DeploymentError:
+        return DeploymentError(f"{self.path}: {key}: {problem}")
+
+    def deployment(self, doc: dict[str, Any]) -> Deployment:
+        self.keys(doc, "", {"deployment", "hosts", "modules"})
+        head = self.table(doc, "deployment")
+        self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
+        hosts_table = self.table(doc, "hosts", required=False)
+        hosts: dict[str, str] = {}
+        for name, table in hosts_table.items():
+            if not isinstance(table, dict):
+                raise self.fail(f"hosts.{name}", "expected a table")
+            self.keys(table, f"hosts.{name}", {"address"})
+            hosts[name] = self.string(table, f"hosts.{name}", "address", default="")
+        explicit_hosts = bool(hosts)
+        if not explicit_hosts:
+            hosts = {LOCALHOST: "127.0.0.1"}
+        shared = {
+            "scenario": self.path_or_none(head, "scenario"),
+            "course": self.path_or_none(head, "course"),
+            "origin": self.string(head, "deployment", "origin", default=""),
+        }
+        modules_table = self.table(doc, "modules")
+        if not modules_table:
+            raise self.fail("modules", "a deployment needs at least one module")
+        specs = [self.module(label, table, hosts, explicit_hosts, shared) for label, table in modules_table.items()]
+        seen: dict[int, str] = {}
+        for spec in specs:
+            if spec.source_id in seen:
+                raise self.fail(
+                    f"modules.{spec.label}.source_id", f"{spec.source_id} is already used by {seen[spec.source_id]}"
+                )
+            seen[spec.source_id] = spec.label
+        key_file = self.path_or_none(head, "key_file")
+        return Deployment(
+            self.path,
+            self.string(head, "deployment", "name", default=self.path.stem),
+            self.string(head, "deployment", "bus"),
+            key_file,
+            shared["scenario"],  # type: ignore[arg-type]
+            shared["course"],  # type: ignore[arg-type]
+            shared["origin"],  # type: ignore[arg-type]
+            hosts,
+            tuple(specs),
+        )
+
+    def module(
+        self, label: str, table: Any, hosts: dict[str, str], explicit_hosts: bool, shared: dict[str, Any]
+    ) -> ModuleSpec:
+        where = f"modules.{label}"
+        if not isinstance(table, dict):
+            raise self.fail(where, "expected a table")
+        self.keys(table, where, {"module", "host", "source_id", "nice", "heartbeat_timeout_s", "set"})
+        name = self.string(table, where, "module", default=label)
+        try:
+            cls = module_class(name)
+        except SystemExit as exc:
+            raise self.fail(f"{where}.module", str(exc)) from None
+        if explicit_hosts:
+            host = self.string(table, where, "host")
+            if host not in hosts:
+                raise self.fail(f"{where}.host", f"{host!r} is not declared under [hosts]: {sorted(hosts)}")
+        else:
+            host = self.string(table, where, "host", default=LOCALHOST)
+            if host != LOCALHOST:
+                raise self.fail(f"{where}.host", f"{host!r} is not declared: add a [hosts.{host}] table")
+        overrides = table.get("set", {})
+        if not isinstance(overrides, dict):
+            raise self.fail(f"{where}.set", "expected a table of KEY = value")
+        config_fields = {f.name for f in dataclasses.fields(cls.Config)}  # type: ignore[arg-type]
+        values = {k: shared[k] for k in SHARED_SETTINGS if k in config_fields and shared[k] not in (None, "")}
+        values = {k: str(v) for k, v in values.items()} | dict(overrides)
+        try:
+            build_config(cls.Config, values, f"{self.path}: {where}.set")
+        except ConfigError as exc:
+            raise DeploymentError(str(exc)) from None
+        settings = {key: _setting_text(value) for key, value in values.items()}
+        nice = self.integer(table, where, "nice", default=0)
+        if not 0 <= nice <= 19:
+            raise self.fail(f"{where}.nice", f"expected 0..19, got {nice}")
+        timeout = self.number(table, where, "heartbeat_timeout_s", default=3.0)
+        if timeout < 1.5:
+            raise self.fail(f"{where}.heartbeat_timeout_s", "must exceed the 1 s heartbeat period (>= 1.5)")
+        source_id = self.integer(table, where, "source_id", default=cls.default_source_id)
+        if not 1 <= source_id <= 0xFFFF:
+            raise self.fail(f"{where}.source_id", f"expected 1..65535, got {source_id}")
+        return ModuleSpec(label, name, host, source_id, nice, timeout, settings)
+
+    # -- typed access ------------------------------------------------------------------------
+
+    def keys(self, table: dict[str, Any], where: str, allowed: set[str]) -> None:
+        unknown = sorted(set(table) - allowed)
+        if unknown:
+            raise self.fail(f"{where}.{unknown[0]}" if where else unknown[0], f"unknown key; known: {sorted(allowed)}")
+
+    def table(self, doc: dict[str, Any], key: str, required: bool = True) -> dict[str, Any]:
+        if key not in doc:
+            if required:
+                raise self.fail(key, "missing table")
+            return {}
+        if not isinstance(doc[key], dict):
+            raise self.fail(key, "expected a table")
+        return doc[key]
+
+    def string(self, table: dict[str, Any], where: str, key: str, default: str | None = None) -> str:
+        if key not in table:
+            if default is None:
+                raise self.fail(f"{where}.{key}", "missing")
+            return default
+        if not isinstance(table[key], str):
+            raise self.fail(f"{where}.{key}", f"expected a string, got {table[key]!r}")
+        return table[key]
+
+    def integer(self, table: dict[str, Any], where: str, key: str, default: int) -> int:
+        value = table.get(key, default)
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise self.fail(f"{where}.{key}", f"expected an integer, got {value!r}")
+        return value
+
+    def number(self, table: dict[str, Any], where: str, key: str, default: float) -> float:
+        value = table.get(key, default)
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise self.fail(f"{where}.{key}", f"expected a number, got {value!r}")
+        return float(value)
+
+    def path_or_none(self, head: dict[str, Any], key: str) -> Path | None:
+        text = self.string(head, "deployment", key, default="")
+        if not text:
+            return None
+        resolved = (self.base / text).resolve()
+        if not resolved.exists():
+            raise self.fail(f"deployment.{key}", f"{resolved} does not exist")
+        return resolved
+
+
+def _setting_text(value: Any) -> str:
+    """A TOML value as ``--set`` text (booleans lower-case, as the config parser reads them)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(_setting_text(item) for item in value)
+    return str(value)

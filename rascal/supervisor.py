@@ -1,0 +1,205 @@
+"""The supervisor: starts one host's modules as processes and keeps them alive.
+
+It is itself a module on the bus (it hears every heartbeat and reports what it does as
+HealthEvents). A child that exits, or whose heartbeat has been silent for its
+``heartbeat_timeout_s`` (hung: it gets SIGKILL first), is restarted: at once the first time,
+then with a doubling back-off while it keeps failing within ``STABLE_S`` of its last start, so a
+module that crashes on start cannot spin. Each child is told its restart count (``--restarts``),
+which it reports in its own heartbeat.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import ModuleState, ModuleStatus, Severity
+from rascal.deployment import Deployment, ModuleSpec
+from rascal.module import Module, Runtime
+
+CHECK_PERIOD_S = 0.05
+STARTUP_GRACE_S = 15.0  # a fresh process imports numpy, OpenCV...: no heartbeat is expected before this
+STABLE_S = 10.0  # a child that ran this long before failing restarts at once
+FIRST_BACKOFF_S = 0.25
+MAX_BACKOFF_S = 5.0
+STOP_WAIT_S = 5.0
+SUPERVISOR_SOURCE_ID = 9
+
+
+@dataclass
+class Child:
+    """One supervised process and its books."""
+
+    spec: ModuleSpec
+    process: subprocess.Popen[bytes] | None = None
+    started_s: float = 0.0
+    restarts: int = 0
+    failures_in_a_row: int = 0
+    restart_due_s: float | None = None
+    last_heartbeat_s: float | None = None
+    status: ModuleStatus | None = None
+    exits: list[str] = field(default_factory=list)  # why each restart happened
+
+    @property
+    def running(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    """Not read from --set: the supervisor is built by ``rascal run`` with its deployment."""
+
+
+class Supervisor(Module):
+    """Starts this host's modules, restarts crashed or silent ones, stops them in order."""
+
+    name = "supervisor"
+    default_source_id = SUPERVISOR_SOURCE_ID
+    Config = SupervisorConfig
+
+    def __init__(
+        self, runtime: Runtime, deployment: Deployment, host: str, log_dir: Path, env: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(SupervisorConfig(), runtime)
+        self.deployment = deployment
+        self.log_dir = log_dir
+        self.env = env if env is not None else dict(os.environ)
+        self.children = [Child(spec) for spec in deployment.on_host(host)]
+        self._by_source = {child.spec.source_id: child for child in self.children}
+
+    def on_start(self) -> None:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.bus.subscribe(channels.MODULE_STATUS, self.on_status)
+        for child in self.children:
+            self._start(child)
+        self.every(CHECK_PERIOD_S, self.check, priority=8)
+
+    def on_stop(self) -> None:
+        self.stop_children()
+
+    def on_status(self, status: ModuleStatus, envelope: Envelope) -> None:
+        child = self._by_source.get(envelope.source_id)
+        if child is not None:
+            child.last_heartbeat_s = time.monotonic()
+            child.status = status
+
+    def check(self) -> None:
+        now = time.monotonic()
+        for child in self.children:
+            if child.restart_due_s is not None:
+                if now >= child.restart_due_s:
+                    self._start(child)
+                continue
+            code = child.process.poll() if child.process is not None else None
+            if code is not None:
+                self._failed(child, f"exited with {_describe_exit(code)}", now)
+            elif self._silent(child, now):
+                assert child.process is not None
+                child.process.kill()
+                child.process.wait()
+                self._failed(child, f"no heartbeat for {child.spec.heartbeat_timeout_s:.1f} s: killed", now)
+
+    def stop_children(self) -> None:
+        """SIGTERM in reverse start order (the time service last), then SIGKILL stragglers."""
+        running = [child for child in reversed(self.children) if child.running]
+        for child in running:
+            assert child.process is not None
+            child.process.terminate()
+        deadline = time.monotonic() + STOP_WAIT_S
+        for child in running:
+            assert child.process is not None
+            try:
+                child.process.wait(timeout=max(0.05, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                child.process.kill()
+                child.process.wait()
+        for child in self.children:
+            child.restart_due_s = None
+
+    def status_detail(self) -> str:
+        up = sum(child.running for child in self.children)
+        restarts = sum(child.restarts for child in self.children)
+        return f"{up}/{len(self.children)} modules up, {restarts} restarts"
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _silent(self, child: Child, now: float) -> bool:
+        """No heartbeat from this process for its timeout (or, before its first, the start-up grace)."""
+        heard = child.last_heartbeat_s if (child.last_heartbeat_s or 0.0) >= child.started_s else None
+        if heard is None:
+            return now - child.started_s > STARTUP_GRACE_S
+        return now - heard > child.spec.heartbeat_timeout_s
+
+    def _failed(self, child: Child, why: str, now: float) -> None:
+        child.exits.append(why)
+        quick = now - child.started_s < STABLE_S
+        child.failures_in_a_row = child.failures_in_a_row + 1 if quick else 1
+        backoff = 0.0 if child.failures_in_a_row <= 1 else FIRST_BACKOFF_S * 2 ** (child.failures_in_a_row - 2)
+        backoff = min(backoff, MAX_BACKOFF_S)
+        child.restart_due_s = now + backoff
+        child.process = None
+        self.report(
+            Severity.ERROR,
+            "module_restart",
+            f"{child.spec.label} {why}; restarting" + (f" in {backoff:.2f} s" if backoff else ""),
+        )
+
+    def _start(self, child: Child) -> None:
+        spec = child.spec
+        if child.restart_due_s is not None:
+            child.restarts += 1
+        command = [
+            sys.executable,
+            "-m",
+            f"modules.{spec.module}",
+            "--bus",
+            self.deployment.bus,
+            *spec.arguments(),
+            "--restarts",
+            str(child.restarts),
+        ]
+        env = dict(self.env)
+        if self.deployment.key_file is not None:
+            env["RASCAL_KEY_FILE"] = str(self.deployment.key_file)
+        log = (self.log_dir / f"{spec.label}.log").open("ab")
+        nice = spec.nice
+        child.process = subprocess.Popen(
+            command,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=Path(__file__).resolve().parents[1],
+            preexec_fn=(lambda: os.nice(nice)) if nice else None,
+            start_new_session=True,  # Ctrl-C in the terminal reaches the supervisor, which stops them in order
+        )
+        log.close()
+        child.started_s = time.monotonic()
+        child.restart_due_s = None
+        child.status = None
+
+
+def _describe_exit(code: int) -> str:
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"status {code}"
+
+
+def module_state(child: Child) -> str:
+    """What the view shows for a child: its own reported state, or the supervisor's knowledge."""
+    if child.restart_due_s is not None:
+        return "RESTARTING"
+    if not child.running:
+        return "STOPPED"
+    if child.status is None or (child.last_heartbeat_s or 0) < child.started_s:
+        return "STARTING"
+    return ModuleState(child.status.state).name

@@ -1,0 +1,94 @@
+"""Deployment files: the default loads; every kind of mistake names the file and the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
+
+GOOD = """
+[deployment]
+name = "two"
+bus = "udpm://239.255.1.2:7700?ttl=0"
+course = "course.rddf"
+
+[hosts.front]
+address = "10.0.0.1"
+[hosts.back]
+
+[modules.time_service]
+host = "back"
+
+[modules.ins]
+host = "front"
+nice = 5
+set = { filter = "ukf" }
+
+[modules.health]
+host = "back"
+set = { watch = ["IMU:0.5", "GPS:1.0"] }
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    (tmp_path / "course.rddf").write_text("1,35.0,-117.0,30,10\n2,35.0,-116.99,30,10\n")
+    path = tmp_path / "deploy.toml"
+    path.write_text(text)
+    return path
+
+
+def test_the_default_deployment_runs_every_module_here() -> None:
+    deployment = load_deployment(DEFAULT_DEPLOYMENT)
+    assert set(deployment.hosts) == {"localhost"}
+    labels = [spec.label for spec in deployment.on_host("localhost")]
+    assert labels[0] == "time_service" and {"sim", "ins", "lidar_h_left"} <= set(labels)
+    assert len({spec.source_id for spec in deployment.modules}) == len(deployment.modules)
+
+
+def test_hosts_shared_settings_and_overrides(tmp_path: Path) -> None:
+    deployment = load_deployment(write(tmp_path, GOOD))
+    assert [s.label for s in deployment.on_host("front")] == ["ins"]
+    ins = deployment.spec("ins")
+    assert ins.nice == 5 and ins.source_id == 11
+    assert ins.settings == {"course": str((tmp_path / "course.rddf").resolve()), "filter": "ukf"}
+    assert "course" not in deployment.spec("health").settings  # health has no course setting
+    assert deployment.spec("health").arguments()[-1] == "watch=IMU:0.5,GPS:1.0"
+    with pytest.raises(DeploymentError, match="no host 'side'"):
+        deployment.on_host("side")
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t.replace('name = "two"', 'name = "two"\nspeed = 3'), r"deployment\.speed: unknown key"),
+        (lambda t: t.replace('bus = "udpm://239.255.1.2:7700?ttl=0"\n', ""), r"deployment\.bus: missing"),
+        (lambda t: t.replace('course = "course.rddf"', 'course = "nowhere.rddf"'), r"deployment\.course: .* not exist"),
+        (lambda t: t.replace('host = "front"', 'host = "side"'), r"modules\.ins\.host: 'side' is not declared"),
+        (lambda t: t.replace('host = "front"\n', ""), r"modules\.ins\.host: missing"),
+        (lambda t: t.replace("nice = 5", "nice = 40"), r"modules\.ins\.nice: expected 0\.\.19"),
+        (lambda t: t.replace("nice = 5", 'nice = "low"'), r"modules\.ins\.nice: expected an integer"),
+        (lambda t: t.replace('filter = "ukf"', "filters = 2"), r"modules\.ins\.set: unknown key"),
+        (
+            lambda t: t.replace('[modules.health]\nhost = "back"', '[modules.health]\nhost = "back"\nsource_id = 11'),
+            r"modules\.health\.source_id: 11 is already used by ins",
+        ),
+        (lambda t: t + '\n[modules.radar]\nhost = "back"\n', r"modules\.radar\.module: no module named 'radar'"),
+        (
+            lambda t: t.replace("[modules.time_service]", "[modules.time_service]\nheartbeat_timeout_s = 0.5"),
+            r"heartbeat_timeout_s: must exceed",
+        ),
+        (lambda t: t.replace("[deployment]", "[deployment\n"), r"not valid TOML"),
+    ],
+)
+def test_mistakes_name_the_key(tmp_path: Path, edit, message: str) -> None:  # type: ignore[no-untyped-def]
+    path = write(tmp_path, edit(GOOD))
+    with pytest.raises(DeploymentError, match=message) as caught:
+        load_deployment(path)
+    assert str(path) in str(caught.value)
+
+
+def test_a_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(DeploymentError, match="not found"):
+        load_deployment(tmp_path / "none.toml")
