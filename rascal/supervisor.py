@@ -31,6 +31,7 @@ FIRST_BACKOFF_S = 0.25
 MAX_BACKOFF_S = 5.0
 STOP_WAIT_S = 5.0
 SUPERVISOR_SOURCE_ID = 9
+RUN_DIR_ENV = "RASCAL_RUN_DIR"
 
 
 @dataclass
@@ -166,6 +167,7 @@ class Supervisor(Module):
             str(child.restarts),
         ]
         env = dict(self.env)
+        env[RUN_DIR_ENV] = str(self.log_dir.resolve())  # where a module may leave run artefacts
         if self.deployment.key_file is not None:
             env["RASCAL_KEY_FILE"] = str(self.deployment.key_file)
         log = (self.log_dir / f"{spec.label}.log").open("ab")

@@ -18,6 +18,9 @@ ALLOWED = {
     Path("modules/sim"),  # the simulator publishes the truth
     Path("modules/nav_sensors"),  # simulated sensors measure it
     Path("modules/lidar"),
+    Path("modules/referee"),  # judges the drive against the truth
+    Path("modules/stereo_camera"),  # renders what the cameras see
+    Path("modules/esvs/camera"),  # the camera renderer library
 }
 CHECKED = ("brain", "esvs_client", "modules", "rascal")
 

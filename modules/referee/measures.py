@@ -1,0 +1,124 @@
+"""Drive measures from the simulator's truth: how well the stack drove the scenario.
+
+Sans-IO: feed every truth sample (and every planned path as it is published); read ``result()``.
+Measures: completion and time; mean speed against the mean the RDDF and curvature allow (the
+course path's own speed profile); cross-track error of the true position to the newest planned
+path (RMS and max); collisions and corridor exits (the simulator counts them); the minimum
+clearance between the vehicle's footprint and any obstacle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from modules.sim.collision import clearance_m
+from modules.sim.scenario import Scenario
+from modules.sim.vehicle import VehicleParams
+from protocol.messages import Path, SimTruth
+
+FINISH_DISTANCE_M = 1.5  # as the simulator's own finish check
+CLEARANCE_REACH_M = 15.0  # obstacles farther from the vehicle's centre cannot set the minimum
+
+
+@dataclass(frozen=True)
+class DriveMeasures:
+    finished: bool
+    completion: float  # share of the route driven
+    progress_m: float
+    route_length_m: float
+    time_s: float  # scenario time at the finish (or the last sample)
+    mean_speed_mps: float
+    allowed_mean_speed_mps: float
+    speed_ratio: float  # mean speed / allowed mean speed, over the part driven
+    cross_track_rms_m: float
+    cross_track_max_m: float
+    collisions: int
+    corridor_exits: int
+    min_clearance_m: float
+    samples: int
+
+    def as_dict(self) -> dict[str, float | int | bool]:
+        return {k: (round(v, 4) if isinstance(v, float) and math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+class Referee:
+    def __init__(self, scenario: Scenario, params: VehicleParams | None = None) -> None:
+        self.params = params or VehicleParams()
+        self.route = scenario.route
+        self.obstacles = scenario.world.obstacles
+        self._obstacle_xy = np.array([(o.east_m, o.north_m) for o in self.obstacles]).reshape(-1, 2)
+        self._reach = np.array([o.footprint_radius_m() for o in self.obstacles]) + CLEARANCE_REACH_M
+        self.path_xy: np.ndarray | None = None
+        self.cross_track: list[float] = []
+        self.min_clearance_m = math.inf
+        self.last: SimTruth | None = None
+        self.finish_time_s: float | None = None
+        self.samples = 0
+
+    def on_path(self, path: Path) -> None:
+        if len(path.points) >= 2:
+            self.path_xy = np.array([(p.east_m, p.north_m) for p in path.points])
+
+    def on_truth(self, truth: SimTruth) -> None:
+        self.samples += 1
+        self.last = truth
+        if self.finish_time_s is None and self.route.length_m - truth.progress_m < FINISH_DISTANCE_M:
+            self.finish_time_s = truth.scenario_time_s
+        if self.finish_time_s is not None:
+            return  # after the finish only the totals matter
+        if self.path_xy is not None and truth.speed_mps > 0.5:
+            self.cross_track.append(distance_to_polyline(self.path_xy, truth.east_m, truth.north_m))
+        if len(self.obstacles):
+            d = np.hypot(self._obstacle_xy[:, 0] - truth.east_m, self._obstacle_xy[:, 1] - truth.north_m)
+            for index in np.flatnonzero(d < self._reach):
+                self.min_clearance_m = min(self.min_clearance_m, clearance_m(truth, self.obstacles[index], self.params))
+
+    def result(self) -> DriveMeasures:
+        last = self.last
+        length = float(self.route.length_m)
+        progress = last.progress_m if last else 0.0
+        time_s = self.finish_time_s if self.finish_time_s is not None else (last.scenario_time_s if last else 0.0)
+        mean = progress / time_s if time_s > 0 else 0.0
+        allowed = self._allowed_mean_speed(progress)
+        track = np.array(self.cross_track) if self.cross_track else np.array([math.nan])
+        return DriveMeasures(
+            finished=self.finish_time_s is not None,
+            completion=progress / length if length else 0.0,
+            progress_m=progress,
+            route_length_m=length,
+            time_s=time_s,
+            mean_speed_mps=mean,
+            allowed_mean_speed_mps=allowed,
+            speed_ratio=mean / allowed if allowed > 0 else 0.0,
+            cross_track_rms_m=float(np.sqrt(np.mean(track**2))),
+            cross_track_max_m=float(np.max(track)),
+            collisions=last.collisions if last else 0,
+            corridor_exits=last.corridor_exits if last else 0,
+            min_clearance_m=self.min_clearance_m,
+            samples=self.samples,
+        )
+
+    def _allowed_mean_speed(self, progress_m: float) -> float:
+        """Mean speed of the route's speed profile over the first ``progress_m`` metres."""
+        route = self.route
+        end = int(np.searchsorted(route.s_m, progress_m, side="right"))
+        if end < 2:
+            return 0.0
+        s, v = route.s_m[:end], route.speed_mps[:end]
+        segment_speed = np.maximum((v[:-1] + v[1:]) / 2.0, 1e-3)
+        time_s = float(np.sum(np.diff(s) / segment_speed))
+        return float(s[-1] - s[0]) / time_s if time_s > 0 else 0.0
+
+
+def distance_to_polyline(points: np.ndarray, east_m: float, north_m: float) -> float:
+    """Shortest distance from a point to a polyline of (n, 2) points."""
+    a, b = points[:-1], points[1:]
+    ab = b - a
+    length_sq = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12)
+    p = np.array([east_m, north_m])
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / length_sq, 0.0, 1.0)
+    nearest = a + t[:, None] * ab
+    return float(np.min(np.hypot(nearest[:, 0] - east_m, nearest[:, 1] - north_m)))

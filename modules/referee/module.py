@@ -1,0 +1,76 @@
+"""The referee process: watches the simulator's truth and the planned path, and writes the drive
+measures (modules/referee/measures.py) as JSON when it stops.
+
+Simulation only, like the simulator: it reads the truth the stack never sees. It writes to
+``out``, or, when that is empty, to ``drive.json`` in ``$RASCAL_RUN_DIR`` (set by ``rascal run``
+for every module it starts).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from modules.referee.measures import Referee as Measures
+from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import Path as PlannedPath
+from protocol.messages import SimTruth
+from rascal.config import setting
+from rascal.module import Module, Runtime
+
+RUN_DIR_ENV = "RASCAL_RUN_DIR"
+SUMMARY_PERIOD_S = 1.0
+
+
+@dataclass(frozen=True)
+class RefereeConfig:
+    scenario: str = setting(str(DEFAULT_SCENARIO), "scenario TOML whose route and obstacles are judged")
+    out: str = setting("", "JSON file for the measures (empty: $RASCAL_RUN_DIR/drive.json, or none)")
+
+
+class Referee(Module):
+    """Judges the drive from the simulator's truth: completion, speed, cross-track, clearance."""
+
+    name = "referee"
+    default_source_id = 6
+    Config = RefereeConfig
+
+    def __init__(self, config: RefereeConfig, runtime: Runtime) -> None:
+        super().__init__(config, runtime)
+        self.out = Path(config.out) if config.out else None
+        if self.out is None and os.environ.get(RUN_DIR_ENV):
+            self.out = Path(os.environ[RUN_DIR_ENV]) / "drive.json"
+
+    def on_start(self) -> None:
+        self.measures = Measures(load_scenario(self.config.scenario))
+        self.bus.subscribe(channels.SIM_TRUTH, self.on_truth)
+        self.bus.subscribe(channels.PATH, self.on_path)
+        self.every(SUMMARY_PERIOD_S, self.write, priority=1)
+
+    def on_truth(self, truth: SimTruth, _envelope: Envelope) -> None:
+        self.measures.on_truth(truth)
+
+    def on_path(self, path: PlannedPath, _envelope: Envelope) -> None:
+        self.measures.on_path(path)
+
+    def write(self) -> None:
+        """Written every second, not only at the end: a killed referee leaves its last word."""
+        if self.out is not None:
+            tmp = self.out.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.measures.result().as_dict(), indent=2))
+            tmp.replace(self.out)
+
+    def on_stop(self) -> None:
+        self.write()
+
+    def status_detail(self) -> str:
+        r = self.measures.result()
+        return (
+            f"{100 * r.completion:.1f} % in {r.time_s:.0f} s, {r.mean_speed_mps:.1f} m/s "
+            f"({100 * r.speed_ratio:.0f} % of allowed), xtrack rms {r.cross_track_rms_m:.2f} m, "
+            f"collisions {r.collisions}, exits {r.corridor_exits}, clearance {r.min_clearance_m:.2f} m"
+        )
