@@ -1,0 +1,191 @@
+"""The vehicle controller without any I/O: a pose and a path in, an actuator command out.
+
+It joins RASCAL's three parts (II.C): the path interface (``path_tracking``), heading control
+(``steering``: Stanley/Hoffmann or RASCAL's PD) and speed control (``speed``: PI), and applies
+the steering limits. Deciding *whether* to drive (stale inputs, pause, e-stop) is the process's
+job; it calls :meth:`VehicleController.brake` instead of :meth:`drive` then.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from modules.control.limits import DEFAULT_WHEELBASE_M, SteeringLimits
+from modules.control.path_tracking import PathTracker, Projection, TrackedPath, wrap_angle
+from modules.control.speed import PiSpeedController, SpeedGains, split_effort
+from modules.control.steering import PdGains, PdHeadingController, StanleyGains, heading_gain, stanley_steering
+
+LAWS = ("stanley", "pd")
+
+
+class Mode(enum.Enum):
+    DRIVE = "drive"
+    HOLD = "hold"  # the path asks for zero speed here and the vehicle has stopped
+    END = "end"  # past the end of the path
+    OFF_PATH = "off_path"
+    FAILSAFE = "failsafe"
+    PAUSE = "pause"
+    ESTOP = "estop"
+
+
+class Pose(NamedTuple):
+    """What the controller needs of the navigation solution (rear axle centre, ENU)."""
+
+    east_m: float
+    north_m: float
+    yaw_rad: float
+    speed_mps: float
+    yaw_rate_radps: float = 0.0
+
+
+class Output(NamedTuple):
+    throttle: float
+    brake: float
+    steering_rad: float
+    stop_reason: str  # empty while driving
+    mode: Mode
+    cross_track_m: float  # of the reference point, left positive (nan when not on a path)
+    heading_error_rad: float
+    target_speed_mps: float
+    speed_error_mps: float  # target minus actual
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    law: str = "stanley"
+    wheelbase_m: float = DEFAULT_WHEELBASE_M
+    limits: SteeringLimits = field(default_factory=SteeringLimits)
+    stanley: StanleyGains = field(default_factory=StanleyGains)
+    pd: PdGains = field(default_factory=PdGains)
+    speed: SpeedGains = field(default_factory=SpeedGains)
+    heading_bandwidth_radps: float = 6.0  # the heading loop's bandwidth cap (see steering.heading_gain)
+    speed_preview_time_s: float = 0.5  # target speed is read this far ahead (actuator lag, braking)
+    speed_preview_min_m: float = 2.0  # ... and at least this far (a path starting at 0 m/s still starts)
+    stop_speed_mps: float = 0.3  # below it, with a zero target, the brake is simply held
+    slow_mode_speed_mps: float = 1.0  # RASCAL: no safe path left -> 1 m/s
+    max_cross_track_m: float = 5.0  # further from the path than this: brake, the path is not ours
+    window_back_m: float = 2.0
+    window_ahead_m: float = 6.0
+    curvature_window_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.law not in LAWS:
+            raise ValueError(f"controller law must be one of {LAWS}, not {self.law!r}")
+        positive = (
+            "wheelbase_m",
+            "heading_bandwidth_radps",
+            "speed_preview_min_m",
+            "stop_speed_mps",
+            "max_cross_track_m",
+            "window_ahead_m",
+        )
+        for name in positive:
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
+                raise ValueError(f"{name} must be finite and positive, got {getattr(self, name)!r}")
+        not_negative = (
+            "speed_preview_time_s",
+            "slow_mode_speed_mps",
+            "window_back_m",
+            "curvature_window_m",
+        )
+        for name in not_negative:
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
+                raise ValueError(f"{name} must be finite and not negative, got {getattr(self, name)!r}")
+
+
+class VehicleController:
+    """Path tracking, heading and speed control with the steering limits, one step at a time."""
+
+    def __init__(self, settings: ControllerSettings | None = None) -> None:
+        self.settings = settings or ControllerSettings()
+        s = self.settings
+        self.tracker = PathTracker(s.window_back_m, s.window_ahead_m, max(s.curvature_window_m, 1e-3))
+        self.pd = PdHeadingController(s.pd)
+        self.speed = PiSpeedController(s.speed)
+        self.steering_rad = 0.0  # the last commanded (already limited) wheel angle
+        self.slow_mode = False
+        self._idle_s = 0.0  # time since the last drive step, for the tracker's search window
+        self._last_speed_mps = 0.0
+
+    def set_path(self, path: TrackedPath, slow_mode: bool = False) -> None:
+        """Follow a new path (raises PathError through TrackedPath if it is unusable)."""
+        self.tracker.set_path(path)
+        self.slow_mode = slow_mode
+        self.pd.reset()
+
+    def brake(self, reason: str, mode: Mode, dt_s: float) -> Output:
+        """Full brake, no throttle, steering held where it is; the controllers start afresh later."""
+        self.speed.reset()
+        self.pd.reset()
+        self._idle_s += dt_s
+        return Output(0.0, 1.0, self.steering_rad, reason, mode, math.nan, math.nan, 0.0, -self._last_speed_mps)
+
+    def drive(self, pose: Pose, dt_s: float) -> Output:
+        if not dt_s > 0.0:
+            raise ValueError(f"dt_s must be positive, got {dt_s!r}")
+        if self.tracker.path is None:
+            raise RuntimeError("drive() before set_path()")
+        s = self.settings
+        speed = max(0.0, pose.speed_mps)
+        self._last_speed_mps = speed
+        travelled = speed * (dt_s + self._idle_s) + 1.0
+        self._idle_s = 0.0
+
+        # The reference point: Stanley works at the front axle (its heading term then holds a
+        # curve with no cross-track error), the PD at the rear axle it steers around.
+        offset = s.wheelbase_m if s.law == "stanley" else 0.0
+        ref_east = pose.east_m + offset * math.cos(pose.yaw_rad)
+        ref_north = pose.north_m + offset * math.sin(pose.yaw_rad)
+        where = self.tracker.locate(ref_east, ref_north, pose.yaw_rad, travelled)
+
+        if abs(where.cross_track_m) > s.max_cross_track_m:
+            # Too far to rejoin by steering: this is not a path we are on.
+            out = self.brake(f"off path: {where.cross_track_m:+.1f} m from it", Mode.OFF_PATH, dt_s)
+            return out._replace(cross_track_m=where.cross_track_m)
+
+        gain = heading_gain(speed, s.wheelbase_m, s.heading_bandwidth_radps)
+        if s.law == "stanley":
+            heading_error = wrap_angle(where.heading_rad - pose.yaw_rad)
+            target = stanley_steering(
+                heading_error, where.cross_track_m, speed, s.stanley, pose.yaw_rate_radps, where.curvature_1pm, gain
+            )
+        else:
+            look_east, look_north = self.tracker.lookahead_point(where, s.pd.lookahead_m(speed))
+            bearing = math.atan2(look_north - pose.north_m, look_east - pose.east_m)
+            heading_error = wrap_angle(bearing - pose.yaw_rad)
+            target = gain * self.pd.steer(heading_error, dt_s)
+        self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
+
+        target_speed = self._target_speed(where, speed)
+        if where.beyond_end_m > 0.0:
+            out = self._hold(speed, "end of path", Mode.END)
+        elif target_speed < s.stop_speed_mps and speed < s.stop_speed_mps:
+            out = self._hold(speed, "path asks to stop", Mode.HOLD)
+        else:
+            effort = self.speed.update(target_speed, speed, dt_s)
+            throttle, brake = split_effort(effort, s.speed.deadband)
+            out = Output(throttle, brake, self.steering_rad, "", Mode.DRIVE, 0.0, 0.0, 0.0, 0.0)
+        return out._replace(
+            cross_track_m=where.cross_track_m,
+            heading_error_rad=heading_error,
+            target_speed_mps=target_speed,
+            speed_error_mps=target_speed - speed,
+        )
+
+    def _target_speed(self, where: Projection, speed_mps: float) -> float:
+        s = self.settings
+        preview = max(s.speed_preview_min_m, s.speed_preview_time_s * speed_mps)
+        target = self.tracker.speed_ahead(where, preview)
+        if where.beyond_end_m > 0.0:
+            target = 0.0
+        if self.slow_mode:
+            target = min(target, s.slow_mode_speed_mps)
+        return target
+
+    def _hold(self, speed_mps: float, reason: str, mode: Mode) -> Output:
+        """Stopped (or stopping) on purpose: brake fully, keep steering along the path."""
+        self.speed.reset()
+        return Output(0.0, 1.0, self.steering_rad, reason, mode, 0.0, 0.0, 0.0, -speed_mps)

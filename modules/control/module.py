@@ -1,0 +1,231 @@
+"""The control process: VehicleState and Path in, ActuatorCommand out at 50 Hz.
+
+Every tick it drives only if both inputs are fresh and usable and the operator has not paused
+or e-stopped the vehicle; otherwise it brakes fully with the steering held, and says why in
+``stop_reason``. Entering and leaving that fail-safe are reported once each as HealthEvents.
+Stop commands act inside the subscription handler: the braking command leaves at once, not at
+the next tick.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose, VehicleController
+from modules.control.limits import (
+    DEFAULT_MAX_STEERING_RAD,
+    DEFAULT_MAX_STEERING_RATE_RADPS,
+    DEFAULT_WHEELBASE_M,
+    SteeringLimits,
+)
+from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
+from modules.control.speed import SpeedGains
+from modules.control.steering import PdGains, StanleyGains
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import ActuatorCommand, NavQuality, Path, Severity, StopCommand, StopMode, VehicleState
+from rascal.config import ConfigError, setting
+from rascal.module import Module
+from rascal.rtdb import Validity
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    rate_hz: float = setting(50.0, "actuator command rate")
+    controller: str = setting("stanley", "steering law: stanley (Hoffmann, Kratos 4.6) or pd (RASCAL heading PD)")
+    state_max_age_s: float = setting(0.2, "VEHICLE_STATE older than this is stale: fail-safe brake")
+    path_max_age_s: float = setting(0.5, "PATH older than this is stale: fail-safe brake")
+    stanley_gain: float = setting(2.5, "Stanley k, 1/s: steering = psi + atan(k e / (k_soft + v))")
+    stanley_softening_mps: float = setting(1.0, "Stanley k_soft")
+    stanley_yaw_damping_s: float = setting(0.0, "Hoffmann yaw-rate damping k_d,yaw (0: off)")
+    pd_kp: float = setting(1.0, "PD: wheel angle per radian of heading error to the look-ahead point")
+    pd_kd_s: float = setting(0.1, "PD: wheel angle per rad/s of heading-error rate")
+    pd_lookahead_min_m: float = setting(2.5, "PD: shortest look-ahead distance")
+    pd_lookahead_time_s: float = setting(0.4, "PD: look-ahead distance per m/s of speed")
+    heading_bandwidth_radps: float = setting(
+        6.0, "cap on the heading loop's bandwidth: above bandwidth * wheelbase the heading gain falls as 1/v"
+    )
+    speed_kp: float = setting(0.5, "PI speed: effort per m/s of error (effort > 0 throttle, < 0 brake)")
+    speed_ki: float = setting(0.2, "PI speed: effort per m/s of error per second")
+    speed_deadband: float = setting(0.03, "efforts this small neither drive nor brake")
+    speed_preview_time_s: float = setting(0.5, "target speed is read this many seconds of travel ahead")
+    max_cross_track_m: float = setting(5.0, "further from the path than this: brake (off path)")
+    heading_smoothing_m: float = setting(
+        DEFAULT_HEADING_SMOOTHING_M, "path heading is averaged over +- this (sharp corners start turning early)"
+    )
+    slow_mode_speed_mps: float = setting(1.0, "speed cap while the path is in slow mode (RASCAL: 1 m/s)")
+    wheelbase_m: float = setting(DEFAULT_WHEELBASE_M, "rear to front axle (Stanley's reference point)")
+    max_steering_rad: float = setting(DEFAULT_MAX_STEERING_RAD, "front wheel angle limit, either side")
+    max_steering_rate_radps: float = setting(DEFAULT_MAX_STEERING_RATE_RADPS, "steering actuator rate limit")
+
+    def __post_init__(self) -> None:
+        if self.controller not in LAWS:
+            raise ConfigError(f"controller must be one of {list(LAWS)}, not {self.controller!r}")
+        for name in ("rate_hz", "state_max_age_s", "path_max_age_s"):
+            if not getattr(self, name) > 0.0:
+                raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if not self.heading_smoothing_m >= 0.0:
+            raise ConfigError(f"heading_smoothing_m must not be negative, got {self.heading_smoothing_m!r}")
+        try:
+            self.controller_settings()
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
+
+    def controller_settings(self) -> ControllerSettings:
+        return ControllerSettings(
+            law=self.controller,
+            wheelbase_m=self.wheelbase_m,
+            heading_bandwidth_radps=self.heading_bandwidth_radps,
+            limits=SteeringLimits(self.max_steering_rad, self.max_steering_rate_radps),
+            stanley=StanleyGains(self.stanley_gain, self.stanley_softening_mps, self.stanley_yaw_damping_s),
+            pd=PdGains(
+                kp=self.pd_kp,
+                kd_s=self.pd_kd_s,
+                lookahead_min_m=self.pd_lookahead_min_m,
+                lookahead_time_s=self.pd_lookahead_time_s,
+            ),
+            speed=SpeedGains(kp=self.speed_kp, ki=self.speed_ki, deadband=self.speed_deadband),
+            speed_preview_time_s=self.speed_preview_time_s,
+            slow_mode_speed_mps=self.slow_mode_speed_mps,
+            max_cross_track_m=self.max_cross_track_m,
+        )
+
+
+class Control(Module):
+    """Vehicle control: path interface, Stanley or PD steering, PI speed; fail-safe braking."""
+
+    name = "control"
+    default_source_id = 40
+    Config = ControlConfig
+
+    def on_start(self) -> None:
+        config: ControlConfig = self.config
+        self.dt_s = 1.0 / config.rate_hz
+        self.controller = VehicleController(config.controller_settings())
+        self.state_in = self.input(channels.VEHICLE_STATE, config.state_max_age_s)
+        self.path_in = self.input(channels.PATH, config.path_max_age_s)
+        self.stop_mode = StopMode.RUN
+        self.stop_text = ""
+        self.failsafe_reason: str | None = None  # None: not in the fail-safe
+        self.last: Output | None = None
+        self.commands = 0
+        self._path_msg: Path | None = None  # the Path message the controller follows (or rejected)
+        self._path_error: str | None = None
+        self.bus.subscribe(channels.STOP, self.on_stop_command)
+        self.every(self.dt_s, self.tick, priority=5)
+
+    # -- operator stop ------------------------------------------------------------------------
+
+    def on_stop_command(self, command: StopCommand, _envelope: Envelope) -> None:
+        if self.stop_mode is StopMode.ESTOP:
+            return  # latched until the process restarts
+        try:
+            mode = StopMode(command.mode)
+        except ValueError:
+            # An order we cannot read is still someone asking to stop: hold braked until RUN.
+            mode = StopMode.PAUSE
+            self.report(Severity.WARNING, "stop_unknown", f"unknown stop mode {command.mode}: holding as PAUSE")
+        if mode is self.stop_mode:
+            return
+        self.stop_mode, self.stop_text = mode, command.reason
+        severity = Severity.CRITICAL if mode is StopMode.ESTOP else Severity.INFO
+        self.report(severity, mode.name.lower(), command.reason or mode.name)
+        if mode is not StopMode.RUN:
+            self._publish(self._operator_stop())
+
+    def _operator_stop(self) -> Output:
+        mode = Mode.ESTOP if self.stop_mode is StopMode.ESTOP else Mode.PAUSE
+        reason = f"{mode.value}: {self.stop_text}" if self.stop_text else mode.value
+        return self.controller.brake(reason, mode, self.dt_s)
+
+    # -- the periodic step --------------------------------------------------------------------
+
+    def tick(self) -> None:
+        if self.stop_mode is not StopMode.RUN:
+            self._publish(self._operator_stop())
+            return
+        now = self.now_ns()
+        state_reading = self.state_in.read(now)
+        path_reading = self.path_in.read(now)
+        problems = [
+            problem
+            for problem in (
+                _input_problem(channels.VEHICLE_STATE, state_reading.validity, state_reading.age_ns),
+                _input_problem(channels.PATH, path_reading.validity, path_reading.age_ns),
+            )
+            if problem is not None
+        ]
+        state: VehicleState | None = state_reading.value
+        if state is not None and state.quality == NavQuality.INVALID:
+            problems.append("VEHICLE_STATE invalid (no navigation solution)")
+        if path_reading.value is not None:
+            path_problem = self._take_path(path_reading.value)
+            if path_problem is not None:
+                problems.append(path_problem)
+        if problems or state is None:
+            reason = "; ".join(problems)
+            self._failsafe(reason)
+            self._publish(self.controller.brake(reason, Mode.FAILSAFE, self.dt_s))
+            return
+        pose = Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps)
+        out = self.controller.drive(pose, self.dt_s)
+        # Being far off the path is a fail-safe too: the path no longer describes where we are.
+        self._failsafe(out.stop_reason if out.mode is Mode.OFF_PATH else None)
+        self._publish(out)
+
+    def _take_path(self, path: Path) -> str | None:
+        """Follow ``path`` if it is new and usable; the reason it is not, if it is not."""
+        previous = self._path_msg
+        if path is not previous and (
+            previous is None or path.path_id != previous.path_id or path.points != previous.points
+        ):
+            self._path_msg = path
+            try:
+                tracked = TrackedPath.from_points(path.points, self.config.heading_smoothing_m)
+                self.controller.set_path(tracked, bool(path.slow_mode))
+                self._path_error = None
+            except PathError as exc:
+                self._path_error = f"PATH {path.path_id} unusable: {exc}"
+        elif path is not previous:
+            self._path_msg = path
+            self.controller.slow_mode = bool(path.slow_mode)
+        return self._path_error
+
+    def _failsafe(self, reason: str | None) -> None:
+        """Report entering and leaving the fail-safe, once each."""
+        if reason is not None and self.failsafe_reason is None:
+            self.report(Severity.ERROR, "control_failsafe", f"braking: {reason}")
+        elif reason is None and self.failsafe_reason is not None:
+            self.report(Severity.INFO, "control_resumed", f"driving again after: {self.failsafe_reason}")
+        self.failsafe_reason = reason
+
+    def _publish(self, out: Output) -> None:
+        self.last = out
+        self.commands += 1
+        self.bus.publish(
+            channels.ACTUATOR_COMMAND, ActuatorCommand(out.throttle, out.brake, out.steering_rad, out.stop_reason)
+        )
+
+    def on_stop(self) -> None:
+        # Leave the vehicle braked when this process ends.
+        if hasattr(self, "controller"):
+            self._publish(self.controller.brake("control stopping", Mode.FAILSAFE, self.dt_s))
+
+    def status_detail(self) -> str:
+        out = self.last
+        if out is None:
+            return f"{self.config.controller}: no command yet"
+        text = f"{self.config.controller} {out.mode.value}: "
+        if not math.isnan(out.cross_track_m):
+            text += f"cte {out.cross_track_m:+.2f} m, speed err {out.speed_error_mps:+.2f} m/s, "
+        text += f"steer {out.steering_rad:+.3f} rad, sent {self.commands}"
+        return text + (f"; {out.stop_reason}" if out.stop_reason else "")
+
+
+def _input_problem(channel: str, validity: Validity, age_ns: int | None) -> str | None:
+    if validity is Validity.NEVER:
+        return f"{channel} missing"
+    if validity is Validity.STALE:
+        return f"{channel} stale ({(age_ns or 0) / 1e9:.2f} s old)"
+    return None
