@@ -11,6 +11,7 @@ MODULES = [
     "benchmarks.bench_sim",
     "benchmarks.bench_lidar",
     "benchmarks.bench_ins",
+    "benchmarks.bench_camera",
 ]
 
 
