@@ -10,9 +10,11 @@ from pathlib import Path
 from brain.rddf_cli import add_rddf_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
+from rascal.logtools import add_log_commands
 
-# Tools with their own argument parsers: `rascal GROUP TOOL ...` hands the rest to MODULE.main.
-DELEGATED_TOOLS: dict[tuple[str, str], tuple[str, str]] = {
+# Commands with their own argument parsers: `rascal WORDS ...` hands the rest to MODULE.main.
+DELEGATED_TOOLS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("run",): ("rascal.run", "run a deployment's modules here, supervised, until the course is done"),
     ("ins", "accuracy"): ("modules.nav_sensors.accuracy", "replay a scenario through the navigation filters"),
     ("esvs", "eval"): ("modules.esvs.evaluate", "stereo accuracy on a pair with ground truth"),
 }
@@ -29,9 +31,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         run_module(module_class(argv[1]), argv[2:])
         return 0
-    if tuple(argv[:2]) in DELEGATED_TOOLS:
-        target, _ = DELEGATED_TOOLS[(argv[0], argv[1])]
-        return int(importlib.import_module(target).main(argv[2:]))
+    for words in (tuple(argv[:2]), tuple(argv[:1])):
+        if words in DELEGATED_TOOLS:
+            target, _ = DELEGATED_TOOLS[words]
+            return int(importlib.import_module(target).main(argv[len(words) :]))
     args = build_parser().parse_args(argv)
     return args.handler(args)
 
@@ -43,7 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     commands.add_parser("module", help="run one module process: rascal module NAME [options]")
     groups: dict[str, argparse._SubParsersAction] = {}
-    for (group, tool), (_, help_text) in DELEGATED_TOOLS.items():
+    for words, (_, help_text) in DELEGATED_TOOLS.items():
+        if len(words) == 1:
+            commands.add_parser(words[0], help=f"{help_text} (rascal {words[0]} --help)")
+            continue
+        group, tool = words
         if group not in groups:
             groups[group] = commands.add_parser(group, help=f"{group} tools").add_subparsers(dest="tool", required=True)
         groups[group].add_parser(tool, help=f"{help_text} (rascal {group} {tool} --help)")
@@ -91,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     status.set_defaults(handler=_time_status)
 
     add_rddf_commands(commands)
+    add_log_commands(commands)
     return parser
 
 

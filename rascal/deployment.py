@@ -55,6 +55,11 @@ class ModuleSpec:
     nice: int = 0
     heartbeat_timeout_s: float = 3.0
     settings: dict[str, str] = field(default_factory=dict)
+    entry: str = ""  # the Python module to run, when it is not modules.<module> (the recorder)
+
+    @property
+    def python_module(self) -> str:
+        return self.entry or f"modules.{self.module}"
 
     def arguments(self) -> list[str]:
         """Command-line arguments after ``python -m modules.<module>`` (bus and key excluded)."""

@@ -66,13 +66,20 @@ class Supervisor(Module):
     Config = SupervisorConfig
 
     def __init__(
-        self, runtime: Runtime, deployment: Deployment, host: str, log_dir: Path, env: dict[str, str] | None = None
+        self,
+        runtime: Runtime,
+        deployment: Deployment,
+        host: str,
+        log_dir: Path,
+        env: dict[str, str] | None = None,
+        extra: tuple[ModuleSpec, ...] = (),
     ) -> None:
+        """``extra`` processes start first (and so stop last), before the deployment's own."""
         super().__init__(SupervisorConfig(), runtime)
         self.deployment = deployment
         self.log_dir = log_dir
         self.env = env if env is not None else dict(os.environ)
-        self.children = [Child(spec) for spec in deployment.on_host(host)]
+        self.children = [Child(spec) for spec in (*extra, *deployment.on_host(host))]
         self._by_source = {child.spec.source_id: child for child in self.children}
 
     def on_start(self) -> None:
@@ -159,7 +166,7 @@ class Supervisor(Module):
         command = [
             sys.executable,
             "-m",
-            f"modules.{spec.module}",
+            spec.python_module,
             "--bus",
             self.deployment.bus,
             *spec.arguments(),
