@@ -12,6 +12,7 @@ MODULES = [
     "benchmarks.bench_lidar",
     "benchmarks.bench_ins",
     "benchmarks.bench_camera",
+    "benchmarks.bench_fusion",
 ]
 
 
