@@ -71,7 +71,14 @@ def floor_times_ns(steps: int) -> list[int]:
 def row(label: str, times_ns: Sequence[int]) -> list[str]:
     us = sorted(t / 1e3 for t in times_ns)
     p99 = us[min(len(us) - 1, int(0.99 * len(us)))]
-    return [label, f"{len(us):,}", f"{statistics.fmean(us):.0f}", f"{us[len(us) // 2]:.0f}", f"{p99:.0f}", f"{us[-1]:.0f}"]
+    return [
+        label,
+        f"{len(us):,}",
+        f"{statistics.fmean(us):.0f}",
+        f"{us[len(us) // 2]:.0f}",
+        f"{p99:.0f}",
+        f"{us[-1]:.0f}",
+    ]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,10 +12,10 @@ import pytest
 
 from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
-from modules.sim.world import SensorFault
-from protocol.messages import NavQuality
 from modules.nav_sensors import replay as sim
 from modules.nav_sensors.replay import Drive, Errors, Run
+from modules.sim.world import SensorFault
+from protocol.messages import NavQuality
 
 OUTAGE_START_S, OUTAGE_END_S, OUTAGE_RUN_S = 120.0, 300.0, 330.0
 
