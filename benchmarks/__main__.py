@@ -13,6 +13,7 @@ MODULES = [
     "benchmarks.bench_ins",
     "benchmarks.bench_camera",
     "benchmarks.bench_fusion",
+    "benchmarks.bench_vision",
 ]
 
 

@@ -1,0 +1,115 @@
+"""One stereo frame in, obstacle and lane-border descriptors out: ``process(left, right, rig)``.
+
+Stages (each timed in ``Stats.timings_s``):
+
+1. ``disparity``: semi-global matching on the rows of the 10-35 m band only;
+2. ``reproject``: every matched pixel to VEHICLE x, y, z (the rig's Q matrix, then
+   camera_to_vehicle);
+3. ``obstacle_points``: Kratos' Algorithm 1 (pairs of points nearly one above the other);
+4. ``obstacles``: points grouped into Obstacle descriptors;
+5. ``lane_heat``: lane filters on the left image, warped into a bird's-eye heat map;
+6. ``lane_fit``: RANSAC parabolas and greedy extension into LaneBorder descriptors.
+
+Pure: no bus, no clock other than the stage timer, no state between calls except caches of
+per-rig lookup tables and one matcher object per thread.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from modules.esvs.geometry import RASCAL_RIG, StereoRig
+from modules.esvs.vision.band import Band, BandParams, band_rows, vehicle_points
+from modules.esvs.vision.clusters import ClusterParams, describe
+from modules.esvs.vision.disparity import REALTIME, MatcherParams, compute_disparity
+from modules.esvs.vision.lane_fit import FitParams, fit_borders
+from modules.esvs.vision.lane_heat import HeatParams, heat_map, off_ground, pixel_scores
+from modules.esvs.vision.obstacle_points import ObstaclePointParams, obstacle_points
+from protocol.messages import Frame, LaneBorders, ObstacleList, Sensor
+
+STAGES = ("disparity", "reproject", "obstacle_points", "obstacles", "lane_heat", "lane_fit")
+
+
+@dataclass(frozen=True)
+class VisionParams:
+    band: BandParams = field(default_factory=BandParams)
+    matcher: MatcherParams = REALTIME
+    points: ObstaclePointParams = field(default_factory=ObstaclePointParams)
+    max_range_m: float = 40.0  # obstacle points are sought up to this far ahead of the cameras
+    clusters: ClusterParams = field(default_factory=ClusterParams)
+    heat: HeatParams = field(default_factory=HeatParams)
+    fit: FitParams = field(default_factory=FitParams)
+
+
+@dataclass(frozen=True)
+class Stats:
+    timings_s: dict[str, float]  # per stage, in STAGES order
+    band: Band
+    matched: float  # share of band pixels with a disparity
+    obstacle_points: int
+    lane_cells: int  # hot cells in the heat map
+
+    @property
+    def total_s(self) -> float:
+        return sum(self.timings_s.values())
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, rig: StereoRig) -> None:
+    """Raise ValueError unless both images are grey uint8 of the rig's size."""
+    expected = (rig.height_px, rig.width_px)
+    for name, image in (("left", left), ("right", right)):
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.shape != expected:
+            shape = getattr(image, "shape", None)
+            dtype = getattr(image, "dtype", type(image).__name__)
+            raise ValueError(f"{name} image must be grey uint8 {expected}, got {shape} {dtype}")
+
+
+def process(
+    left: np.ndarray, right: np.ndarray, rig: StereoRig = RASCAL_RIG, params: VisionParams | None = None
+) -> tuple[ObstacleList, LaneBorders, Stats]:
+    """Obstacles and lane borders (VEHICLE frame) seen in one rectified grey stereo pair."""
+    params = params or VisionParams()
+    check_pair(left, right, rig)
+    left, right = np.ascontiguousarray(left), np.ascontiguousarray(right)  # no copy when they are
+    band = band_rows(rig, params.band)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter
+    start = clock()
+
+    band_left = left[band.top : band.bottom]
+    disparity = compute_disparity(band_left, right[band.top : band.bottom], params.matcher)
+    timings["disparity"], start = clock() - start, clock()
+
+    x, y, z = vehicle_points(disparity, rig, band.top)
+    timings["reproject"], start = clock() - start, clock()
+
+    nearest_disparity = rig.focal_px * rig.baseline_m / params.max_range_m
+    mask = obstacle_points(x, y, z, disparity, rig.baseline_m, params.points, nearest_disparity)
+    timings["obstacle_points"], start = clock() - start, clock()
+
+    max_disparity = params.matcher.min_disparity + params.matcher.num_disparities
+    obstacles = describe(mask, disparity, (x, y, z), max_disparity, params.clusters)
+    timings["obstacles"], start = clock() - start, clock()
+
+    scores = pixel_scores(band_left, rig, band.top, params.heat, off_ground(z, mask, params.heat))
+    heat = heat_map(scores, rig, band.top, params.heat)
+    timings["lane_heat"], start = clock() - start, clock()
+
+    borders = fit_borders(heat, params.fit)
+    timings["lane_fit"] = clock() - start
+
+    stats = Stats(
+        timings_s=timings,
+        band=band,
+        matched=float(np.isfinite(disparity).mean()),
+        obstacle_points=int(mask.sum()),
+        lane_cells=int((heat.heat >= params.fit.hot).sum()),
+    )
+    return (
+        ObstacleList(sensor=Sensor.ESVS, frame=Frame.VEHICLE, obstacles=obstacles),
+        LaneBorders(sensor=Sensor.ESVS, borders=borders),
+        stats,
+    )
