@@ -1,6 +1,6 @@
 """The simulated vehicle in its world: applies actuator commands and publishes the truth.
 
-Each 100 Hz step applies the newest ActuatorCommand to the vehicle dynamics, checks the footprint
+Each 100 Hz tick applies the newest ActuatorCommand to the vehicle dynamics, checks the footprint
 against the scenario's obstacles and the RDDF corridor, and publishes SimTruth on its sim-only
 channel. Collisions and corridor exits are counted in SimTruth and reported once each, when they
 begin, as HealthEvents. Like real actuators, the vehicle keeps executing the last command it got
@@ -9,6 +9,7 @@ until a new one arrives: stopping a vehicle whose commands went stale is the con
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,10 @@ from rascal.config import setting
 from rascal.module import Module
 
 PARKED = ActuatorCommand(throttle=0.0, brake=1.0, steering_rad=0.0, stop_reason="not yet commanded")
+# A late tick steps the physics by the time that really passed, so simulated time stays shared
+# time: every truth stamp, and every sensor stamp made from it, then agrees with how far the
+# vehicle moved. Longer gaps (a stopped process) are not caught up.
+MAX_CATCH_UP_S = 0.2
 PROGRESS_SEARCH_M = 60  # route points searched around the last match each step
 
 
@@ -49,6 +54,7 @@ class Simulator(Module):
         self.world = WorldState(self.scenario, VehicleParams())
         self.command = PARKED
         self.dt_s = 1.0 / self.config.rate_hz
+        self.last_tick_ns: int | None = None
         self.bus.subscribe(channels.ACTUATOR_COMMAND, self.on_command)
         self.every(self.dt_s, self.tick, priority=5)
 
@@ -57,8 +63,14 @@ class Simulator(Module):
 
     def tick(self) -> None:
         now = self.now_ns()
-        for code, text in self.world.advance(self.command, self.dt_s):
-            self.report(Severity.ERROR, code, text)
+        elapsed_s = self.dt_s if self.last_tick_ns is None else (now - self.last_tick_ns) / 1e9
+        self.last_tick_ns = now
+        elapsed_s = min(max(elapsed_s, 0.0), MAX_CATCH_UP_S)
+        # Steps no longer than the nominal one, so a late tick integrates exactly as punctual ones.
+        steps = max(1, math.ceil(elapsed_s / self.dt_s - 1e-6))
+        for _ in range(steps):
+            for code, text in self.world.advance(self.command, elapsed_s / steps):
+                self.report(Severity.ERROR, code, text)
         self.bus.publish(channels.SIM_TRUTH, self.world.truth(), t_meas_ns=now)
 
     def status_detail(self) -> str:
