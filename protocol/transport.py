@@ -18,6 +18,7 @@ import os
 import select
 import socket
 import struct
+import threading
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
@@ -216,11 +217,14 @@ class MemTransport(Transport):
         self._channels: set[str] = set()
         self._all = False
         self._queue: deque[bytes] = deque()
+        self._arrived = threading.Condition()
 
     def send(self, channel: str, datagram: bytes) -> None:
         for member in self._hub.members:
             if member._all or channel in member._channels:
-                member._queue.append(datagram)
+                with member._arrived:
+                    member._queue.append(datagram)
+                    member._arrived.notify()
 
     def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
         self._channels.add(channel)
@@ -229,8 +233,13 @@ class MemTransport(Transport):
         self._all = True
 
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:
+        """Like a socket: wait up to ``timeout_s`` for a datagram (from another thread) when none
+        is queued, rather than return at once and have a caller's loop spin."""
         handled = 0
         queue = self._queue
+        if not queue and timeout_s > 0:
+            with self._arrived:
+                self._arrived.wait_for(lambda: bool(queue), timeout_s)
         while queue and handled < budget:
             deliver(queue.popleft())
             handled += 1
