@@ -125,6 +125,22 @@ class Runtime:
         first = epoch + int(offset_s * 1e9)
         heapq.heappush(self._tasks, _Task(name, fn, int(period_s * 1e9), first, priority))
 
+    def set_period(self, name: str, period_s: float, first_in_s: float | None = None, stagger_s: float = 0.0) -> int:
+        """Give every running task called ``name`` a new period; the first (in due order) is next
+        due ``first_in_s`` from now (default: one new period), each further one ``stagger_s`` after
+        the one before. Returns how many tasks changed. For a module that retimes itself live
+        (the ESVS round)."""
+        if period_s <= 0 or stagger_s < 0:
+            raise ValueError(f"task {name}: period must be positive and stagger not negative")
+        period_ns = int(period_s * 1e9)
+        first = time.monotonic_ns() + (period_ns if first_in_s is None else int(first_in_s * 1e9))
+        matching = sorted((task for task in self._tasks if task.name == name), key=lambda task: task.due_ns)
+        for index, task in enumerate(matching):
+            task.period_ns = period_ns
+            task.due_ns = first + index * int(stagger_s * 1e9)
+        heapq.heapify(self._tasks)
+        return len(matching)
+
     def add_input(self, channel: str, max_age_s: float, msg_type: type | None = None) -> Latest[Any]:
         entry = self.bus.latest(channel, int(max_age_s * 1e9), msg_type)
         self.inputs.append(entry)

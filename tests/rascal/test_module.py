@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import uuid
 from dataclasses import dataclass
+
+import pytest
 
 from protocol import channels
 from protocol.auth import Keyring
@@ -70,3 +73,19 @@ def test_heartbeat_reports_state_and_stale_inputs() -> None:
     assert first.state == ModuleState.DEGRADED  # its input has never arrived
     assert first.stale_inputs == (channels.OBSTACLES_BEACON,)
     assert last.state == ModuleState.STOPPING
+
+
+def test_set_period_retimes_running_tasks_staggered() -> None:
+    runtime = make_runtime(uuid.uuid4().hex, 41, Keyring.generate())
+    calls: list[str] = []
+    for k in range(3):
+        runtime.add_task("watch", lambda: calls.append("w"), 0.1, offset_s=0.025 * (k + 1))
+    runtime.add_task("other", lambda: calls.append("o"), 0.1)
+    assert runtime.set_period("watch", 0.04, first_in_s=0.05, stagger_s=0.01) == 3
+    watches = sorted(task for task in runtime._tasks if task.name == "watch")
+    assert [task.period_ns for task in watches] == [40_000_000] * 3
+    assert [b.due_ns - a.due_ns for a, b in itertools.pairwise(watches)] == [10_000_000] * 2
+    assert next(task for task in runtime._tasks if task.name == "other").period_ns == 100_000_000
+    assert runtime.set_period("missing", 1.0) == 0
+    with pytest.raises(ValueError):
+        runtime.set_period("watch", 0.0)

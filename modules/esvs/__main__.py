@@ -1,0 +1,6 @@
+from modules.esvs import MODULE
+from rascal.launch import run_module
+
+# Guarded: the vision workers' fork server imports the main module of a process it serves.
+if __name__ == "__main__":
+    run_module(MODULE)
