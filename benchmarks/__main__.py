@@ -14,6 +14,8 @@ MODULES = [
     "benchmarks.bench_camera",
     "benchmarks.bench_fusion",
     "benchmarks.bench_vision",
+    "benchmarks.bench_planner",
+    "benchmarks.bench_cambada",
 ]
 
 

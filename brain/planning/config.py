@@ -1,0 +1,123 @@
+"""The planner's settings, with units in the names, and the vehicle dimensions they start from.
+
+The footprint defaults are those of the simulated ATV (``modules.sim.vehicle.VehicleParams``:
+1.2 m wide, 2.1 m long, rear axle 0.4 m from the back); the planner does not import the
+simulator, so a test keeps the two in step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from rascal.config import setting
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Everything the planner can be tuned by. Validated on construction: bad values raise ValueError."""
+
+    vehicle_width_m: float = setting(1.2, "overall width of the vehicle footprint")
+    vehicle_length_m: float = setting(2.1, "overall length of the vehicle footprint")
+    rear_overhang_m: float = setting(0.4, "rear axle (the pose's reference point) to the rear end")
+    margin_m: float = setting(0.4, "extra clearance to lethal cells beyond the vehicle's half width")
+    corridor_margin_m: float = setting(0.0, "extra clearance to the corridor edge beyond the vehicle's half width")
+    horizon_m: float = setting(80.0, "length of the published path ahead of the vehicle")
+    point_spacing_m: float = setting(1.0, "spacing of the published path points")
+    check_spacing_m: float = setting(0.25, "spacing of the samples a path is checked at")
+    station_behind_m: float = setting(15.0, "how far behind the previous station the vehicle is searched for")
+    station_ahead_m: float = setting(60.0, "how far ahead of the previous station the vehicle is searched for")
+    max_path_deviation_m: float = setting(2.0, "re-plan when the vehicle is further than this from its path")
+    # Candidates (RASCAL: new paths generated from the vehicle's velocity).
+    offset_step_m: float = setting(0.5, "lateral spacing of candidate offsets")
+    max_offsets: int = setting(41, "most candidate offsets; wide corridors get a coarser step")
+    transition_times_s: tuple[float, ...] = setting((1.2, 2.2, 3.5), "lateral transition lengths as seconds of travel")
+    min_transition_m: float = setting(4.0, "shortest lateral transition")
+    max_transition_m: float = setting(40.0, "longest lateral transition")
+    hold_after_conflict_m: tuple[float, ...] = setting(
+        (5.0, 15.0), "candidates return to the centre line this far past the conflict (or not within the horizon)"
+    )
+    lead_m: float = setting(3.0, "a late candidate completes its swerve this far before the conflict")
+    allow_partial: bool = setting(
+        True, "with no candidate clear all the way, drive on towards a stop short of the hazard if there is a way past"
+    )
+    min_partial_m: float = setting(
+        10.0, "with no candidate clear for the whole horizon, one clear this far beyond the stopping distance will do"
+    )
+    cost_weight: float = setting(4.0, "score per metre of path per unit of footprint-mean cost")
+    offset_weight: float = setting(0.05, "score per metre of path per metre of lateral offset")
+    change_weight: float = setting(0.1, "score per metre of path per metre of departure from the current path")
+    slope_weight: float = setting(2.0, "score per metre of path per squared lateral slope (gentle swerves)")
+    # A* fallback (Kratos: footprint-summed cost grid, 8-connected, binary heap).
+    search_stride: int = setting(
+        3, "A* lattice step in grid cells (1 = every cell); a channel it misses gets finer ones, down to every cell"
+    )
+    search_cost_weight: float = setting(1.0, "A* step cost: length x (1 + weight x footprint-mean cost)")
+    search_unseen_cost: float = setting(
+        1.0,
+        "A* heuristic: the cost assumed for every cell to the goal, as if unseen (Kratos; fusion's cost at p = 0.5)",
+    )
+    search_heuristic_weight: float = setting(1.5, "A* heuristic inflation on top (>1 trades optimality for speed)")
+    goal_margin_m: float = setting(2.0, "the search goal stays this far inside the grid window")
+    cost_cap: float = setting(10.0, "finite stand-in for lethal and very high costs in the footprint sums")
+    # Speeds.
+    slow_speed_mps: float = setting(1.0, "speed commanded when no candidate is left (RASCAL's 1 m/s)")
+    start_speed_mps: float = setting(1.0, "speed the profile may command at once from standstill")
+    max_lateral_accel_mps2: float = setting(2.0, "lateral acceleration limit for curvature speeds")
+    max_accel_mps2: float = setting(1.5, "longitudinal acceleration limit")
+    max_decel_mps2: float = setting(2.0, "planned braking limit")
+    curvature_window_m: float = setting(3.0, "path length curvature is averaged over")
+    near_hazard_speed_mps: float = setting(2.0, "speed allowed at the minimum clearance to a hazard")
+    hazard_speed_gain_mps_per_m: float = setting(2.0, "extra speed allowed per metre of further clearance")
+    caution_probability: float = setting(0.5, "hazard probability from which a cell slows the vehicle nearby")
+    cost_speed_gain: float = setting(0.5, "speed divided by (1 + gain x footprint-mean cost)")
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            values = value if isinstance(value, tuple) else (value,)
+            if not values or not all(isinstance(v, int | float) and math.isfinite(v) and v >= 0 for v in values):
+                raise ValueError(f"PlannerConfig.{f.name}: must be finite and not negative, got {value!r}")
+        positive = (
+            "vehicle_width_m",
+            "vehicle_length_m",
+            "horizon_m",
+            "point_spacing_m",
+            "check_spacing_m",
+            "offset_step_m",
+            "min_transition_m",
+            "max_accel_mps2",
+            "max_decel_mps2",
+            "max_lateral_accel_mps2",
+            "curvature_window_m",
+            "cost_cap",
+        )
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"PlannerConfig.{name}: must be positive")
+        if self.search_stride < 1 or self.max_offsets < 1:
+            raise ValueError("PlannerConfig.search_stride and max_offsets: must be at least 1")
+        if self.search_heuristic_weight < 1.0:
+            raise ValueError("PlannerConfig.search_heuristic_weight: must be at least 1")
+        if self.rear_overhang_m >= self.vehicle_length_m:
+            raise ValueError("PlannerConfig.rear_overhang_m: must be shorter than vehicle_length_m")
+        if self.max_transition_m < self.min_transition_m:
+            raise ValueError("PlannerConfig.max_transition_m: must not be below min_transition_m")
+        if self.check_spacing_m > self.point_spacing_m:
+            raise ValueError("PlannerConfig.check_spacing_m: must not exceed point_spacing_m")
+        if not 0.0 < self.caution_probability <= 1.0:
+            raise ValueError("PlannerConfig.caution_probability: must be in (0, 1]")
+
+    @property
+    def half_width_m(self) -> float:
+        return self.vehicle_width_m / 2.0
+
+    @property
+    def clearance_m(self) -> float:
+        """Least distance from the path (the vehicle's reference line) to a lethal cell centre."""
+        return self.half_width_m + self.margin_m
+
+    @property
+    def corridor_clearance_m(self) -> float:
+        """Least distance from the path to the corridor's edge."""
+        return self.half_width_m + self.corridor_margin_m

@@ -1,0 +1,501 @@
+"""The brain's planner, sans IO: pose and fused map in, a protocol `Path` out, once per cycle.
+
+RASCAL's behaviour (paper II.C), with Kratos' search (4.5.3) as the fallback:
+
+1. Keep the current path while it is clear: its polyline over the next ``horizon_m`` passes the
+   `PathGate` (hazard clearance, corridor) and the vehicle is still near it. Same ``path_id``.
+   Without one (start, slow mode, off the path), the first try is a blend from the vehicle's own
+   offset and heading back to the centre line.
+2. Otherwise generate candidates from the current speed and take the cheapest that passes
+   (`brain.planning.candidates`). New ``path_id``. If none passes for the whole horizon, one that
+   is clear well beyond the stopping distance will do, ending in a stop short of the hazard, as
+   long as the cells show a way past it (and never to leave slow mode).
+3. If none is left, command ``slow_speed_mps`` (slow mode) and search a way with A* over the
+   footprint-cost grid to the furthest reachable goal along the course in the window, smoothed
+   (`brain.planning.search`, `brain.planning.smoothing`). A search path that reached its goal
+   is kept while it stays clear; candidates are tried again every cycle to leave slow mode.
+4. If nothing is reachable, stand still: a one-point path at speed 0, in slow mode. So does a
+   map window that does not contain the vehicle, and the end of the course.
+
+Speeds come from `brain.planning.speed`. Cells outside the grid window count as unknown and
+free: the window must cover what the vehicle can reach before the next cycles see more.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from brain.corridor import Corridor, Course, CoursePath
+from brain.grid import GridWindow
+from brain.planning.bounds import LocalCorridor
+from brain.planning.candidates import choose, stations
+from brain.planning.checks import PathGate
+from brain.planning.config import PlannerConfig
+from brain.planning.frame import CorridorFrame
+from brain.planning.hazards import HazardField
+from brain.planning.profile import LateralProfile, swerve
+from brain.planning.search import Lattice, SearchResult, search
+from brain.planning.smoothing import FreeCells, smooth
+from brain.planning.speed import arc_length, clearance_cap, curvature, reachable
+from protocol.messages import Path, PathPoint
+
+FloatArray = NDArray[np.float64]
+
+_MAX_START_SLOPE = 1.0  # a start heading beyond 45 degrees off the course is taken as 45
+_MIN_PATH_M = 0.05  # shorter than this, a path is a stop
+_SAME_PATH_M = 0.01  # a re-plan this close to the current path everywhere keeps its id
+
+
+class PlanMode(enum.Enum):
+    KEEP = "keep"  # the current path is still clear
+    REPLAN = "replan"  # a new candidate path (RASCAL's re-plan)
+    SEARCH = "search"  # no candidate: a searched path at slow speed
+    STOP = "stop"  # nothing reachable (or the course is done): stand still
+
+
+class Pose(Protocol):
+    """What the planner reads of the vehicle; `protocol.messages.VehicleState` fits."""
+
+    @property
+    def east_m(self) -> float: ...
+
+    @property
+    def north_m(self) -> float: ...
+
+    @property
+    def yaw_rad(self) -> float: ...
+
+    @property
+    def speed_mps(self) -> float: ...
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """One cycle's output and what it took: the Path to publish plus figures for logs."""
+
+    path: Path
+    mode: PlanMode
+    station_m: float
+    lateral_m: float
+    candidates: int = 0
+    candidates_clear: int = 0
+    gated: int = 0
+    expansions: int = 0
+    reached_goal: bool = True
+    partial: bool = False  # a candidate clear for part of the horizon only: the path ends in a stop
+
+    @property
+    def slow_mode(self) -> bool:
+        return self.path.slow_mode
+
+
+@dataclass(frozen=True)
+class _Current:
+    """The path being followed: a lateral profile (candidates) or a fixed polyline (search)."""
+
+    path_id: int
+    profile: LateralProfile | None = None
+    polyline: FloatArray | None = None
+    reached_goal: bool = True
+
+
+class Planner:
+    """Plans on a course's centre path and corridor; holds the current path between cycles."""
+
+    def __init__(
+        self,
+        course_path: CoursePath,
+        corridor: Corridor,
+        config: PlannerConfig | None = None,
+        first_path_id: int = 1,
+    ) -> None:
+        self.config = config or PlannerConfig()
+        self.frame = CorridorFrame(course_path)
+        self.corridor = LocalCorridor(corridor)
+        self._next_id = first_path_id
+        self._current: _Current | None = None
+        self._station: float | None = None
+
+    @classmethod
+    def for_course(cls, course: Course, config: PlannerConfig | None = None, first_path_id: int = 1) -> Planner:
+        """A planner on ``course.interpolate()`` (its default limits) and ``course.corridor``."""
+        return cls(course.interpolate(), course.corridor, config, first_path_id)
+
+    def reset(self) -> None:
+        """Forget the current path and the station (e.g. after a long outage or a manual drive)."""
+        self._current = None
+        self._station = None
+
+    def plan(
+        self,
+        pose: Pose,
+        window: GridWindow,
+        hazard_probability: ArrayLike,
+        cost: ArrayLike,
+        max_speed_mps: float,
+    ) -> PlanResult:
+        """One planning cycle. ``max_speed_mps`` is the health monitor's speed limit."""
+        east, north, yaw, speed = (float(v) for v in (pose.east_m, pose.north_m, pose.yaw_rad, pose.speed_mps))
+        if not all(math.isfinite(v) for v in (east, north, yaw, speed, max_speed_mps)):
+            raise ValueError("the pose, speed and speed limit must be finite")
+        if speed < 0.0 or max_speed_mps < 0.0:
+            raise ValueError("speed and speed limit must not be negative")
+        cfg = self.config
+        if self._station is None:
+            self._station = self.frame.locate_start(east, north, yaw)
+        s0, d0 = (
+            float(v) for v in self.frame.locate(east, north, self._station, cfg.station_behind_m, cfg.station_ahead_m)
+        )
+        self._station = s0
+        hazards = HazardField(window, hazard_probability, cost, cfg.clearance_m, cfg.cost_cap, cfg.caution_probability)
+        gate = PathGate(
+            hazards,
+            self.corridor,
+            cfg.clearance_m,
+            cfg.corridor_clearance_m,
+            cfg.check_spacing_m,
+            cfg.vehicle_length_m - cfg.rear_overhang_m,
+        )
+        cycle = _Cycle(self, gate, east, north, yaw, speed, max_speed_mps, s0, d0)
+        s_end = min(s0 + cfg.horizon_m, self.frame.length_m)
+        # A map that does not cover the vehicle says nothing about where it is: do not drive on it.
+        if s_end - s0 < _MIN_PATH_M or not window.inside(*window.cell_of(east, north)):
+            return cycle.stop()
+        return cycle.run(s_end)
+
+    def _new_id(self) -> int:
+        path_id = self._next_id
+        self._next_id += 1
+        return path_id
+
+
+class _Cycle:
+    """One call of `Planner.plan`: the steps share the pose, the gate and the planner's state."""
+
+    def __init__(
+        self,
+        planner: Planner,
+        gate: PathGate,
+        east: float,
+        north: float,
+        yaw: float,
+        speed: float,
+        max_speed: float,
+        s0: float,
+        d0: float,
+    ) -> None:
+        self.planner = planner
+        self.cfg = planner.config
+        self.frame = planner.frame
+        self.gate = gate
+        self.east, self.north, self.yaw, self.speed, self.max_speed = east, north, yaw, speed, max_speed
+        self.s0, self.d0 = s0, d0
+        self._space: _SearchSpace | None = None
+        self._way_through: bool | None = None
+
+    def run(self, s_end: float) -> PlanResult:
+        cfg = self.cfg
+        current = self.planner._current
+        s = stations(self.s0, s_end, cfg.point_spacing_m)
+        base = None
+        following = current is not None and current.profile is not None
+        if following and abs(float(current.profile.at(self.s0)[0]) - self.d0) <= cfg.max_path_deviation_m:
+            base = current.profile.since(self.s0 - cfg.point_spacing_m)
+        fresh = base is None
+        if base is None:
+            base = self.default_profile()
+        points = np.column_stack(self.frame.to_enu(s, base.at(s)[0]))
+        # A path to the horizon goes on next cycle; only one to the end of the course stops there.
+        verdict = self.gate.check(points, nose=s_end >= self.frame.length_m - 1e-6)
+        if verdict.ok:
+            if fresh or current is None:
+                path_id = self.planner._new_id()
+                self.planner._current = _Current(path_id, profile=base)
+                return self.publish(path_id, PlanMode.REPLAN, points, s, slow=False)
+            return self.publish(current.path_id, PlanMode.KEEP, points, s, slow=False)
+        conflict = min(self.s0 + verdict.first_failure_m, s_end)
+        min_length = self.speed**2 / (2.0 * cfg.max_decel_mps2) + cfg.min_partial_m
+        choice = choose(self.frame, self.gate, cfg, base, self.s0, s_end, conflict, self.speed, True, min_length)
+        counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
+        if choice.partial and not cfg.allow_partial:
+            choice = dataclasses.replace(choice, profile=None)
+        elif choice.partial:
+            # Only worth it if there is a way past the hazard it stops short of, and never a way
+            # out of slow mode: that takes a candidate clear all the way.
+            slow = current is not None and current.polyline is not None
+            if slow or not self.way_through(s_end):
+                choice = dataclasses.replace(choice, profile=None)
+        if choice.profile is not None and choice.points is not None and choice.stations_m is not None:
+            chosen = choice.stations_m
+            same = (
+                not fresh
+                and current is not None
+                and current.profile is not None
+                and float(np.max(np.abs(choice.profile.at(chosen)[0] - current.profile.at(chosen)[0]))) < _SAME_PATH_M
+            )
+            if same and current is not None:
+                path_id, mode = current.path_id, PlanMode.KEEP
+            else:
+                path_id, mode = self.planner._new_id(), PlanMode.REPLAN
+            self.planner._current = _Current(path_id, profile=choice.profile)
+            return self.publish(
+                path_id,
+                mode,
+                choice.points,
+                chosen,
+                slow=False,
+                stop_at_end=choice.partial,
+                partial=choice.partial,
+                **counts,
+            )
+        kept = self.kept_search_path()
+        if kept is not None and current is not None:
+            return self.publish(current.path_id, PlanMode.SEARCH, kept, None, slow=True, **counts)
+        found = self.search_path(s_end)
+        if found is None:
+            return self.stop(**counts)
+        points, reached, expansions = found
+        path_id = self.planner._new_id()
+        self.planner._current = _Current(path_id, polyline=points, reached_goal=reached)
+        return self.publish(
+            path_id, PlanMode.SEARCH, points, None, slow=True, expansions=expansions, reached_goal=reached, **counts
+        )
+
+    def default_profile(self) -> LateralProfile:
+        """From the vehicle's own lateral state (its offset, and its heading relative to the
+        course) back to the centre line over a middle transition length for its speed."""
+        cfg = self.cfg
+        relative = math.remainder(self.yaw - float(self.frame.heading_at(self.s0)), math.tau)
+        slope = float(np.clip(math.tan(np.clip(relative, -1.5, 1.5)), -_MAX_START_SLOPE, _MAX_START_SLOPE))
+        start = LateralProfile(np.array([self.s0]), np.array([self.s0]), np.array([[self.d0, slope, 0, 0, 0, 0.0]]))
+        times = sorted(cfg.transition_times_s)
+        length = float(np.clip(times[len(times) // 2] * self.speed, cfg.min_transition_m, cfg.max_transition_m))
+        return swerve(start, self.s0, 0.0, length, self.s0 + length)
+
+    def kept_search_path(self) -> FloatArray | None:
+        """The current searched path from the vehicle on, if it reached its goal and is still clear."""
+        current = self.planner._current
+        if current is None or current.polyline is None or not current.reached_goal:
+            return None
+        trimmed, deviation = _trim(current.polyline, np.array([self.east, self.north]))
+        if deviation > self.cfg.max_path_deviation_m or arc_length(trimmed)[-1] < _MIN_PATH_M:
+            return None
+        return trimmed if self.gate.check(trimmed).ok else None
+
+    def search_space(self, s_end: float) -> _SearchSpace | None:
+        """The vehicle's cell, the goal and the free cells of this cycle's search (built once)."""
+        if self._space is not None:
+            return self._space
+        cfg, window = self.cfg, self.gate.hazards.window
+        res = window.resolution_m
+        start = tuple(int(v) for v in window.cell_of(self.east, self.north))
+        goal = self.goal(s_end)
+        if not window.inside(*start) or goal is None:
+            return None
+        point, normal, half_width = goal
+        # Thresholds at cell centres such that any point between two free centres passes the gate.
+        slack = cfg.check_spacing_m / 2.0 + res * math.sqrt(2.0) / 2.0
+        free = self.gate.hazards.clearance_m[1:-1, 1:-1] >= cfg.clearance_m + slack
+        free &= self.planner.corridor.mask(window, cfg.corridor_clearance_m + slack)
+        self._space = _SearchSpace((start[0], start[1]), point - half_width * normal, point + half_width * normal, free)
+        return self._space
+
+    def lattice_search(self, space: _SearchSpace, stride: int) -> SearchResult:
+        """A* on the lattice of every ``stride``-th cell through the vehicle's cell."""
+        cfg, window = self.cfg, self.gate.hazards.window
+        lattice = Lattice.build(space.free, stride, space.start)
+        rows, cols = lattice.node_centres()
+        east, north = window.centre_of(rows, cols)
+        distance = _distance_to_segment(east, north, space.goal_a, space.goal_b)
+        goal_mask = distance <= lattice.stride * window.resolution_m
+        # Short of the goal, end nearest it, and among equals nearest the centre line.
+        middle = (space.goal_a + space.goal_b) / 2.0
+        shortfall = distance + 0.01 * np.hypot(east - middle[0], north - middle[1])
+        weight = 1.0 + cfg.search_cost_weight * self.gate.hazards.footprint_cost[rows, cols].astype(float)
+        return search(
+            lattice,
+            lattice.node_of(space.start),
+            goal_mask,
+            distance,
+            weight,
+            window.resolution_m,
+            cfg.search_heuristic_weight * (1.0 + cfg.search_cost_weight * cfg.search_unseen_cost),
+            shortfall,
+        )
+
+    def way_through(self, s_end: float) -> bool:
+        """Whether any free path of cells joins the vehicle to the goal (a labelling, no search)."""
+        if self._way_through is None:
+            self._way_through = self._label_way_through(s_end)
+        return self._way_through
+
+    def _label_way_through(self, s_end: float) -> bool:
+        space = self.search_space(s_end)
+        if space is None or not space.free[space.start]:
+            return False
+        window = self.gate.hazards.window
+        _, labels = cv2.connectedComponents(space.free.astype(np.uint8), connectivity=8)
+        reach = self.cfg.search_stride * window.resolution_m
+        low = np.minimum(space.goal_a, space.goal_b) - reach
+        high = np.maximum(space.goal_a, space.goal_b) + reach
+        (row_lo, row_hi), (col_lo, col_hi) = window.cell_of([low[0], high[0]], [low[1], high[1]])
+        rows = slice(max(int(row_lo), 0), min(int(row_hi) + 1, window.rows))
+        cols = slice(max(int(col_lo), 0), min(int(col_hi) + 1, window.cols))
+        east, north = window.centre_of(*np.mgrid[rows, cols])
+        near = _distance_to_segment(east, north, space.goal_a, space.goal_b) <= reach
+        return bool(np.any(labels[rows, cols][near] == labels[space.start]))
+
+    def search_path(self, s_end: float) -> tuple[FloatArray, bool, int] | None:
+        """A* from the vehicle's cell to the furthest goal in the window, smoothed and gated."""
+        cfg, window = self.cfg, self.gate.hazards.window
+        space = self.search_space(s_end)
+        if space is None:
+            return None
+        free = space.free
+        result = self.lattice_search(space, cfg.search_stride)
+        stride = cfg.search_stride
+        while not result.reached_goal and stride > 1 and self.way_through(s_end):
+            # The lattice missed a channel the cells have: a finer lattice, down to every cell.
+            stride -= 1
+            finer = self.lattice_search(space, stride)
+            expansions = result.expansions + finer.expansions
+            result = dataclasses.replace(finer if finer.reached_goal else result, expansions=expansions)
+        if len(result.cells) < 2:
+            return None
+        centres = np.column_stack(window.centre_of(result.cells[:, 0], result.cells[:, 1]))
+        reached = result.reached_goal
+        while len(centres) >= 2 and not self.gate.nose_clear(centres):
+            centres, reached = centres[:-1], False
+        if len(centres) < 2:
+            return None
+        for candidate in (smooth(centres, FreeCells(window, free)), centres):
+            points = _resample(candidate, cfg.point_spacing_m, cfg.check_spacing_m)
+            if self.gate.check(points).ok:
+                return points, reached, result.expansions
+        return None
+
+    def goal(self, s_end: float) -> tuple[FloatArray, FloatArray, float] | None:
+        """The centre-line point furthest along (up to ``s_end``) before the course leaves the
+        window shrunk by the goal margin, its frame normal and the corridor half width there."""
+        window = self.gate.hazards.window
+        res, margin = window.resolution_m, self.cfg.goal_margin_m
+        s = np.append(np.arange(self.s0, s_end, res), s_end)
+        east, north = self.frame.to_enu(s, np.zeros_like(s))
+        inside = (
+            (east >= window.origin_east_m + margin)
+            & (east <= window.origin_east_m + window.cols * res - margin)
+            & (north >= window.origin_north_m + margin)
+            & (north <= window.origin_north_m + window.rows * res - margin)
+        )
+        if not inside[0]:
+            return None
+        last = len(s) - 1 if inside.all() else int(np.argmin(inside)) - 1
+        station = float(s[last])
+        heading = float(self.frame.heading_at(station))
+        normal = np.array([-math.sin(heading), math.cos(heading)])
+        point = np.array([east[last], north[last]])
+        return point, normal, float(self.frame.half_width_at(station))
+
+    def publish(
+        self,
+        path_id: int,
+        mode: PlanMode,
+        points: FloatArray,
+        stations_m: FloatArray | None,
+        slow: bool,
+        stop_at_end: bool = False,
+        **figures: int | bool,
+    ) -> PlanResult:
+        """The Path for ``points`` with speeds under every cap; it ends at speed 0 in slow mode
+        (a searched path ends where the search did) and when ``stop_at_end``."""
+        cfg = self.cfg
+        hazards = self.gate.hazards
+        along = arc_length(points)
+        if stations_m is None:
+            # A searched path is slow anyway; its stations only matter for the course's end, and
+            # its length is never less than the station progress, so the end is seen early.
+            stations_m = self.s0 + along
+        with np.errstate(divide="ignore"):
+            turn_cap = np.sqrt(cfg.max_lateral_accel_mps2 / curvature(points, cfg.curvature_window_m))
+        course_cap = self.frame.speed_at(stations_m) / (
+            1.0 + cfg.cost_speed_gain * hazards.cost_at(points[:, 0], points[:, 1])
+        )
+        near_cap = clearance_cap(
+            hazards.caution_clearance(points[:, 0], points[:, 1]),
+            cfg.clearance_m,
+            cfg.near_hazard_speed_mps,
+            cfg.hazard_speed_gain_mps_per_m,
+        )
+        cap = np.minimum.reduce([turn_cap, course_cap, near_cap, np.full(len(points), self.max_speed)])
+        if slow:
+            cap = np.minimum(cap, cfg.slow_speed_mps)
+        final = 0.0 if slow or stop_at_end else float(cap[-1])
+        start = max(self.speed, cfg.start_speed_mps)
+        speeds = reachable(along, cap, start, final, cfg.max_accel_mps2, cfg.max_decel_mps2)
+        path = Path(
+            path_id,
+            tuple(PathPoint(float(e), float(n), float(v)) for (e, n), v in zip(points, speeds, strict=True)),
+            slow,
+        )
+        return PlanResult(path, mode, self.s0, self.d0, **figures)
+
+    def stop(self, **figures: int | bool) -> PlanResult:
+        """Stand still where the vehicle is: a new one-point path at speed 0, slow mode."""
+        path_id = self.planner._new_id()
+        self.planner._current = None
+        path = Path(path_id, (PathPoint(self.east, self.north, 0.0),), True)
+        figures.setdefault("reached_goal", False)
+        return PlanResult(path, PlanMode.STOP, self.s0, self.d0, **figures)
+
+
+@dataclass(frozen=True)
+class _SearchSpace:
+    start: tuple[int, int]  # the vehicle's cell
+    goal_a: FloatArray  # the goal: the corridor's cross-section from goal_a to goal_b
+    goal_b: FloatArray
+    free: NDArray[np.bool_]  # cells the search may use
+
+
+def _resample(points: FloatArray, spacing_m: float, check_spacing_m: float) -> FloatArray:
+    """The same polyline with points added so none are further apart than ``spacing_m``, placed
+    on the gate's own sample lattice of each segment so the gate sees exactly the samples the
+    smoothing checked."""
+    step = np.diff(points, axis=0)
+    length = np.hypot(step[:, 0], step[:, 1])
+    pieces = np.maximum(1, np.ceil(length / check_spacing_m - 1e-9).astype(np.intp))
+    per_point = max(1, math.floor(spacing_m / check_spacing_m + 1e-9))
+    out = [points[:1]]
+    for start, delta, count in zip(points[:-1], step, pieces, strict=True):
+        marks = np.append(np.arange(per_point, count, per_point), count) / count
+        out.append(start + marks[:, None] * delta)
+    return np.vstack(out)
+
+
+def _trim(polyline: FloatArray, point: FloatArray) -> tuple[FloatArray, float]:
+    """The polyline from the projection of ``point`` on it, and the distance to that projection."""
+    if len(polyline) < 2:
+        return polyline, float(np.hypot(*(polyline[0] - point)))
+    start, step = polyline[:-1], np.diff(polyline, axis=0)
+    length2 = np.einsum("ij,ij->i", step, step)
+    t = np.clip(np.einsum("ij,ij->i", point - start, step) / np.maximum(length2, 1e-12), 0.0, 1.0)
+    foot = start + t[:, None] * step
+    gap = np.hypot(*(foot - point).T)
+    best = int(np.argmin(gap))
+    return np.vstack([foot[best], polyline[best + 1 :]]), float(gap[best])
+
+
+def _distance_to_segment(east: FloatArray, north: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distance from points to the segment a-b."""
+    direction = b - a
+    length2 = float(direction @ direction)
+    rel_e, rel_n = east - a[0], north - a[1]
+    t = np.clip((rel_e * direction[0] + rel_n * direction[1]) / max(length2, 1e-12), 0.0, 1.0)
+    return np.hypot(rel_e - t * direction[0], rel_n - t * direction[1])

@@ -1,0 +1,167 @@
+"""The brain process: fuses every sensor's descriptors into the hazard map, judges sensor health,
+and plans inside the RDDF corridor (brain/fusion, brain/health, brain/planning).
+
+Each planning cycle (``plan_rate_hz``, 10 by default) reads the newest vehicle state, the cost
+map and the drive mode's speed cap, and publishes a Path stamped with the state's measurement
+time. A change of drive mode (lidars silent, blind, navigation lost...) is a HealthEvent the
+moment a cycle sees it. A map snapshot goes out on MAP_SNAPSHOT once a second.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+
+from brain.course_config import DEFAULT_COURSE, load_course
+from brain.fusion.fusion import HazardFusion
+from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
+from brain.planning.planner import Planner, PlanResult
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import LaneBorders, ObstacleList, Sensor, Severity, SurfaceProfile, VehicleState
+from rascal.config import setting
+from rascal.module import Module, Runtime
+
+SENSOR_NAMES = {
+    Sensor.LIDAR_H_LEFT: "lidar_h_left",
+    Sensor.LIDAR_H_RIGHT: "lidar_h_right",
+    Sensor.LIDAR_V_LEFT: "lidar_v_left",
+    Sensor.LIDAR_V_RIGHT: "lidar_v_right",
+    Sensor.ESVS: STEREO,
+}
+NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
+MODE_SEVERITY = {
+    DriveMode.NORMAL: Severity.INFO,
+    DriveMode.LIDAR_DEGRADED: Severity.WARNING,
+    DriveMode.STEREO_ONLY: Severity.WARNING,
+    DriveMode.LIDAR_ONLY: Severity.WARNING,
+    DriveMode.BLIND: Severity.CRITICAL,
+    DriveMode.NAV_LOST: Severity.CRITICAL,
+}
+
+
+@dataclass(frozen=True)
+class BrainConfig:
+    course: str = setting(str(DEFAULT_COURSE), "RDDF file: the corridor and speed limits planned in")
+    origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
+    plan_rate_hz: float = setting(10.0, "planning cycles (and Path messages) per second")
+    snapshot_rate_hz: float = setting(1.0, "map snapshots per second on MAP_SNAPSHOT (0: none)")
+    snapshot_downsample: int = setting(2, "snapshot cells are this many map cells a side (max of each block)")
+    sensors: tuple[str, ...] = setting((*LIDARS, STEREO), "obstacle sensors this vehicle has (health expects them)")
+    lidar_max_age_s: float = setting(0.2, "a lidar silent this long is dead")
+    stereo_max_age_s: float = setting(0.5, "the ESVS silent this long is dead")
+    navigation_max_age_s: float = setting(0.2, "vehicle state this old is lost")
+
+
+class Brain(Module):
+    """Bird's-eye hazard map from every sensor, sensor health, and the planner in the corridor."""
+
+    name = "brain"
+    default_source_id = 30
+    Config = BrainConfig
+
+    def __init__(self, config: BrainConfig, runtime: Runtime) -> None:
+        super().__init__(config, runtime)
+        self.state: VehicleState | None = None
+        self.state_t_ns = 0
+        self.mode: DriveMode | None = None
+        self.last: PlanResult | None = None
+        self.cycle_ms = 0.0
+        self.published = 0
+        self.refused = 0
+
+    def on_start(self) -> None:
+        config = self.config
+        unknown = sorted(set(config.sensors) - set(SENSOR_NAMES.values()))
+        if unknown or not config.plan_rate_hz > 0 or config.snapshot_rate_hz < 0:
+            raise ValueError(f"brain: bad settings (unknown sensors {unknown}, or rates not positive)")
+        if not set(config.sensors) & {*HORIZONTAL_LIDARS, STEREO}:
+            raise ValueError("brain: sensors must include an obstacle sensor (a horizontal lidar or esvs)")
+        cv2.setNumThreads(1)  # the fusion and planning budgets are shares of one core
+        course = load_course(config.course, config.origin)
+        self.planner = Planner.for_course(course)
+        self.fusion = HazardFusion()
+        params = HealthParams(config.lidar_max_age_s, config.stereo_max_age_s, config.navigation_max_age_s)
+        self.health = SensorHealth(params, expected=tuple(config.sensors))
+        bus = self.bus
+        bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
+        bus.subscribe(channels.OBSTACLES_LIDAR, self.on_obstacles)
+        bus.subscribe(channels.OBSTACLES_ESVS, self.on_obstacles)
+        bus.subscribe(channels.SURFACE_PROFILE, self.on_profile)
+        bus.subscribe(channels.LANE_BORDERS, self.on_lanes)
+        self.every(1.0 / config.plan_rate_hz, self.plan, priority=5)
+        if config.snapshot_rate_hz > 0:
+            self.every(1.0 / config.snapshot_rate_hz, self.snapshot, priority=1)
+
+    # -- inputs -------------------------------------------------------------------------------
+
+    def on_vehicle_state(self, state: VehicleState, envelope: Envelope) -> None:
+        self.fusion.add_pose(envelope.t_meas_ns, state)
+        if envelope.t_meas_ns >= self.state_t_ns:  # a late state must not replace a newer one
+            self.state, self.state_t_ns = state, envelope.t_meas_ns
+            self.health.heard_navigation(state, envelope.t_meas_ns)
+
+    def on_obstacles(self, message: ObstacleList, envelope: Envelope) -> None:
+        self._heard(message.sensor, envelope.t_meas_ns)
+        self.fusion.add_obstacles(envelope.t_meas_ns, message)
+
+    def on_profile(self, message: SurfaceProfile, envelope: Envelope) -> None:
+        self._heard(message.sensor, envelope.t_meas_ns)
+        self.fusion.add_profile(envelope.t_meas_ns, message)
+
+    def on_lanes(self, message: LaneBorders, envelope: Envelope) -> None:
+        self.fusion.add_lane_borders(envelope.t_meas_ns, message)
+
+    def _heard(self, sensor: int, t_meas_ns: int) -> None:
+        try:
+            name = SENSOR_NAMES.get(Sensor(sensor))
+        except ValueError:
+            return  # a sensor id this build does not know: fusion counts it too
+        if name is not None:
+            self.health.heard(name, t_meas_ns)
+
+    # -- cycles -------------------------------------------------------------------------------
+
+    def plan(self) -> None:
+        started = time.perf_counter()
+        assessment = self.health.assess(self.now_ns())
+        if assessment.mode is not self.mode:
+            before, self.mode = self.mode, assessment.mode
+            text = f"{before.value if before else 'start'} -> {assessment.mode.value}: {assessment.reason}"
+            self.report(MODE_SEVERITY[assessment.mode], "drive_mode", text)
+        state = self.state
+        cost_map = self.fusion.cost_map() if self.fusion.window is not None else None
+        if state is None or cost_map is None:
+            return  # nothing to plan from: control brakes on the missing path
+        cap = min(assessment.speed_cap_mps, NO_CAP_MPS)
+        # The filter's speed wanders a few mm/s below zero at rest; the vehicle never reverses.
+        pose = state._replace(speed_mps=max(0.0, state.speed_mps))
+        try:
+            self.last = self.planner.plan(pose, cost_map.window, cost_map.hazard_probability, cost_map.cost, cap)
+        except ValueError as exc:  # a non-finite state: no path this cycle, control brakes on its age
+            self.refused += 1
+            if self.refused == 1 or self.refused % 100 == 0:
+                self.report(Severity.ERROR, "plan_refused", f"{exc} ({self.refused} cycles so far)")
+            return
+        self.bus.publish(channels.PATH, self.last.path, t_meas_ns=self.state_t_ns)
+        self.published += 1
+        self.cycle_ms = (time.perf_counter() - started) * 1e3
+
+    def snapshot(self) -> None:
+        if self.fusion.window is not None:
+            self.bus.publish(channels.MAP_SNAPSHOT, self.fusion.snapshot(self.config.snapshot_downsample))
+
+    def status_detail(self) -> str:
+        mode = self.mode.value if self.mode else "starting"
+        if self.last is None:
+            return f"{mode}; no path yet (vehicle state or map missing)"
+        plan = self.last
+        speed = plan.path.points[0].speed_mps if plan.path.points else 0.0
+        stats = self.fusion.stats
+        return (
+            f"{mode}; {plan.mode.value} path {plan.path.path_id} at s={plan.station_m:.0f} m, "
+            f"{speed:.1f} m/s{' SLOW' if plan.slow_mode else ''}; cycle {self.cycle_ms:.1f} ms; "
+            f"fused {stats.messages} msgs, refused no-pose {stats.no_pose}"
+        )

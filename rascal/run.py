@@ -1,0 +1,240 @@
+"""``rascal run [DEPLOY] [--host NAME]``: this host's part of a deployment, supervised and shown live.
+
+Starts the host's modules (rascal/supervisor.py), follows the drive from the navigation
+solution (course progress, speed) and every module's heartbeat, and ends when the vehicle has
+reached the end of the course and stopped, after ``--duration``, or on Ctrl-C. Ending is
+graceful: the vehicle is paused (StopCommand) and seen to stop before the modules are.
+Everything goes to ``runs/<timestamp>/``: each module's log, the whole bus traffic as MCAP
+(``run.mcap``, by a recorder process started first and stopped last) and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections import Counter
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+
+from brain.course_config import load_course
+from brain.planning.frame import CorridorFrame
+from protocol import channels
+from protocol.auth import default_keyring, load_keyring
+from protocol.codec import Envelope
+from protocol.messages import HealthEvent, Severity, StopCommand, StopMode, VehicleState
+from rascal.bus import Bus
+from rascal.clock import SharedClock
+from rascal.deployment import (
+    DEFAULT_DEPLOYMENT,
+    LOCALHOST,
+    Deployment,
+    DeploymentError,
+    ModuleSpec,
+    load_deployment,
+)
+from rascal.module import Runtime
+from rascal.supervisor import SUPERVISOR_SOURCE_ID, Supervisor, module_state
+
+VIEW_PERIOD_S = 0.5
+FINISH_DISTANCE_M = 3.0  # this close to the end of the course, and stopped, is finished
+STOPPED_MPS = 0.3
+SHUTDOWN_STOP_TIMEOUT_S = 5.0
+RECENT_EVENTS = 6
+RECORDER_SOURCE_ID = 8
+
+
+class RunSupervisor(Supervisor):
+    """The supervisor plus what a run needs: progress, the live view, the end, the summary."""
+
+    def __init__(
+        self,
+        runtime: Runtime,
+        deployment: Deployment,
+        host: str,
+        run_dir: Path,
+        duration_s: float | None,
+        console: Console,
+    ) -> None:
+        recorder = ModuleSpec(
+            label="recorder",
+            module="recorder",
+            host=host,
+            source_id=RECORDER_SOURCE_ID,
+            heartbeat_timeout_s=5.0,
+            settings={
+                "out": str((run_dir / "run.mcap").resolve()),
+                "info": f"deployment={deployment.name},host={host}",
+            },
+            entry="rascal.recording",
+        )
+        super().__init__(runtime, deployment, host, run_dir, extra=(recorder,))
+        self.run_dir = run_dir
+        self.duration_s = duration_s
+        self.console = console
+        course = load_course(deployment.course, deployment.origin) if deployment.course else None
+        self.frame = CorridorFrame(course.interpolate()) if course else None
+        self.station_m: float | None = None
+        self.state: VehicleState | None = None
+        self.events: list[HealthEvent] = []
+        self.traffic: Counter[str] = Counter()
+        self.finished = False
+        self.started_s = time.monotonic()
+        self.live: Live | None = None
+
+    def on_start(self) -> None:
+        super().on_start()
+        self.bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
+        self.bus.subscribe(channels.HEALTH, lambda event, _env: self.events.append(event))
+        self.bus.subscribe_raw(lambda opened, _data, _recv_ns: self.traffic.update([opened.channel]))
+        self.every(VIEW_PERIOD_S, self.refresh, priority=1)
+        self.live = Live(self.view(), console=self.console, refresh_per_second=4, transient=False)
+        self.live.start()
+
+    def on_vehicle_state(self, state: VehicleState, _envelope: Envelope) -> None:
+        self.state = state
+        if self.frame is not None:
+            s, _ = self.frame.locate(state.east_m, state.north_m, self.station_m)
+            self.station_m = float(s)
+
+    def refresh(self) -> None:
+        if self.live is not None:
+            self.live.update(self.view())
+        elapsed = time.monotonic() - self.started_s
+        if self.duration_s is not None and elapsed >= self.duration_s:
+            self.runtime.stop()
+        if self.frame is not None and self.station_m is not None and self.state is not None:
+            at_end = self.frame.length_m - self.station_m < FINISH_DISTANCE_M
+            if at_end and abs(self.state.speed_mps) < STOPPED_MPS:
+                self.finished = True
+                self.runtime.stop()
+
+    def on_stop(self) -> None:
+        self._stop_vehicle()
+        super().on_stop()
+        if self.live is not None:
+            self.live.update(self.view())
+            self.live.stop()
+        summary = self.summary()
+        drive = self.run_dir / "drive.json"  # the referee's measures, in simulated deployments
+        if drive.exists():
+            summary["drive"] = json.loads(drive.read_text())
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        self.console.print_json(data={k: summary[k] for k in ("finished", "elapsed_s", "drive") if k in summary})
+
+    def _stop_vehicle(self) -> None:
+        """Pause the vehicle and wait (bounded) until the navigation solution says it stopped."""
+        if self.state is None:
+            return
+        deadline = time.monotonic() + SHUTDOWN_STOP_TIMEOUT_S
+        pause = StopCommand(int(StopMode.PAUSE), "rascal run is shutting down")
+        while time.monotonic() < deadline:
+            self.bus.publish(channels.STOP, pause)
+            self.bus.poll(0.1)
+            if self.state is not None and abs(self.state.speed_mps) < STOPPED_MPS:
+                return
+        self.report(Severity.WARNING, "shutdown", "the vehicle did not report a stop before the modules were ended")
+
+    # -- presentation -------------------------------------------------------------------------
+
+    def progress_line(self) -> str:
+        elapsed = time.monotonic() - self.started_s
+        parts = [f"{self.deployment.name}: {elapsed:5.0f} s"]
+        if self.state is not None:
+            parts.append(f"speed {self.state.speed_mps:4.1f} m/s")
+        if self.frame is not None and self.station_m is not None:
+            share = 100.0 * max(0.0, self.station_m) / self.frame.length_m
+            parts.append(f"course {share:5.1f} % ({self.station_m:.0f}/{self.frame.length_m:.0f} m)")
+        return "   ".join(parts)
+
+    def view(self) -> Group:
+        modules = Table(title=self.progress_line(), title_justify="left", expand=False)
+        for column in ("module", "state", "restarts", "uptime s", "jitter ms", "detail"):
+            modules.add_column(column, justify="left" if column in ("module", "state", "detail") else "right")
+        for child in self.children:
+            status = child.status
+            modules.add_row(
+                child.spec.label,
+                module_state(child),
+                str(child.restarts),
+                f"{status.uptime_s:.0f}" if status else "",
+                f"{status.jitter_ns / 1e6:.1f}" if status else "",
+                (status.detail if status else "")[:70],
+            )
+        recent = Table(title="recent health events", title_justify="left", show_header=False, expand=False)
+        recent.add_column("event")
+        for event in self.events[-RECENT_EVENTS:]:
+            recent.add_row(f"{Severity(event.severity).name:8} {event.module}: {event.code} {event.text}"[:110])
+        return Group(modules, recent)
+
+    def summary(self) -> dict[str, Any]:
+        elapsed = time.monotonic() - self.started_s
+        return {
+            "deployment": self.deployment.name,
+            "finished": self.finished,
+            "elapsed_s": round(elapsed, 2),
+            "course_length_m": self.frame.length_m if self.frame else None,
+            "station_m": self.station_m,
+            "modules": {
+                child.spec.label: {
+                    "restarts": child.restarts,
+                    "restart_reasons": child.exits,
+                    "jitter_ms": child.status.jitter_ns / 1e6 if child.status else None,
+                    "overruns": child.status.overruns if child.status else None,
+                    "rx_rejected": child.status.rx_rejected if child.status else None,
+                    "detail": child.status.detail if child.status else None,
+                }
+                for child in self.children
+            },
+            "messages_per_s": {channel: round(count / elapsed, 1) for channel, count in sorted(self.traffic.items())},
+            "health_events": Counter(f"{e.module}:{e.code}" for e in self.events),
+        }
+
+
+def run(
+    deployment: Deployment,
+    host: str,
+    runs_dir: Path = Path("runs"),
+    duration_s: float | None = None,
+    console: Console | None = None,
+) -> tuple[int, Path]:
+    """Run this host's modules until the course is done, ``duration_s`` or a signal."""
+    if console is None:
+        console = Console()
+        console.width = max(console.width, 140)  # piped (make demo, logs): still one line per module
+    run_dir = runs_dir / datetime.now().strftime("%Y%m%d-%H%M%S")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    keyring = load_keyring(deployment.key_file) if deployment.key_file else default_keyring()
+    clock = SharedClock()
+    bus = Bus.open(deployment.bus, source_id=SUPERVISOR_SOURCE_ID, clock=clock, keyring=keyring)
+    runtime = Runtime(bus, clock)
+    supervisor = RunSupervisor(runtime, deployment, host, run_dir, duration_s, console)
+    runtime.run(supervisor)
+    console.print(f"run {'finished the course' if supervisor.finished else 'ended'}; logs and summary in {run_dir}/")
+    return 0, run_dir
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rascal run", description=__doc__.splitlines()[0])
+    parser.add_argument("deployment", nargs="?", default=str(DEFAULT_DEPLOYMENT), help="deployment TOML")
+    parser.add_argument("--host", help="which host's modules to run (default: the only host, or localhost)")
+    parser.add_argument("--duration", type=float, help="end after this many seconds")
+    parser.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run directories go")
+    args = parser.parse_args(argv)
+    try:
+        deployment = load_deployment(args.deployment)
+        host = args.host or (next(iter(deployment.hosts)) if len(deployment.hosts) == 1 else LOCALHOST)
+        deployment.on_host(host)
+    except DeploymentError as exc:
+        parser.error(str(exc))
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        parser.error("--duration must be a positive number of seconds")
+    status, _ = run(deployment, host, args.runs_dir, args.duration)
+    return status

@@ -1,0 +1,274 @@
+"""The planner's behaviour, scenario by scenario: keep, re-plan around, search through, stop."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from brain.planning import PlanMode, Planner, PlannerConfig, PlanResult
+from modules.sim.vehicle import VehicleParams
+from protocol.codec import Codec, decode_body
+from protocol.messages import NavQuality, Path, VehicleState
+from tests.brain.planning.scenes import (
+    Map,
+    Pose,
+    course_through,
+    densified,
+    path_points,
+    polyline_distance,
+    straight_course,
+)
+
+CONFIG = PlannerConfig()
+RDDF_SPEED = 25.0 * 0.44704  # the test courses' 25 mph limit
+COURSE = straight_course(400.0)  # 30 ft lateral offset: 9.144 m half width
+
+
+def planner(course=COURSE, **changes: object) -> Planner:
+    return Planner.for_course(course, dataclasses.replace(CONFIG, **changes) if changes else CONFIG)
+
+
+def field(east: float = 150.0) -> Map:
+    """Fusion's window: 120 x 30 m at 0.2 m (600 x 150 cells) centred ahead of the vehicle."""
+    return Map.around(east, 0.0, 120.0, 30.0)
+
+
+def plan(p: Planner, grid: Map, pose: Pose | VehicleState, max_speed: float = 20.0) -> PlanResult:
+    return p.plan(pose, grid.window, grid.hazard, grid.cost, max_speed)
+
+
+def assert_safe(points: np.ndarray, grid: Map, course=COURSE) -> None:
+    """Published path: every point of its polyline at least half a width inside the corridor and
+    at least half width plus margin from every lethal cell centre."""
+    xy = points[:, :2]
+    inside = course.corridor.distance_to_edge(*densified(xy).T)
+    assert inside.min() >= CONFIG.corridor_clearance_m - 1e-6
+    assert polyline_distance(xy, grid.lethal_centres()) >= CONFIG.clearance_m - 1e-6
+
+
+def test_clear_grid_follows_the_centre_line_at_the_rddf_speed() -> None:
+    p = planner()
+    grid = field()
+    first = plan(p, grid, Pose(100.0, 0.0, 0.0, RDDF_SPEED))
+    points = path_points(first.path)
+    assert first.mode is PlanMode.REPLAN and not first.slow_mode
+    assert np.abs(points[:, 1]).max() < 1e-6
+    assert points[0, 0] == pytest.approx(100.0) and points[-1, 0] == pytest.approx(180.0)
+    assert np.diff(points[:, 0]).max() <= CONFIG.point_spacing_m + 1e-9
+    np.testing.assert_allclose(points[:, 2], RDDF_SPEED)
+    second = plan(p, grid, Pose(101.5, 0.05, 0.0, RDDF_SPEED))
+    assert second.mode is PlanMode.KEEP and second.path.path_id == first.path.path_id
+    assert path_points(second.path)[0, 0] == pytest.approx(101.5)
+
+
+def test_an_obstacle_on_the_path_makes_a_swerve_with_clearance() -> None:
+    p = planner()
+    grid = field()
+    kept = plan(p, grid, Pose(100.0, 0.0, 0.0, 8.0))
+    grid.disc(140.0, 0.0, 1.0)
+    result = plan(p, grid, Pose(101.0, 0.0, 0.0, 8.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and not result.slow_mode
+    assert result.path.path_id != kept.path.path_id
+    assert_safe(points, grid)
+    beside = points[np.abs(points[:, 0] - 140.0) < 1.0]
+    assert np.all(np.abs(beside[:, 1]) >= 1.0 + CONFIG.clearance_m - 0.2)  # round the 1 m disc
+    assert abs(points[-1, 1]) < 1e-6  # and back on the centre line afterwards
+    assert points[:, 2].max() > 4.0
+    # Passing close to the obstacle is slower than the open stretch before it.
+    assert points[np.abs(points[:, 0] - 140.0) < 2.0, 2].max() < points[:5, 2].min()
+
+
+def chicane(grid: Map) -> Map:
+    """Two walls 7 m apart, their gaps on opposite sides: no single swerve gets through."""
+    grid.box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, 3.5, 142.0, 7.5)
+    return grid.box(147.0, -15.0, 148.0, 15.0).clear_box(146.0, -7.5, 149.0, -3.5)
+
+
+def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
+    p = planner()
+    grid = chicane(field())
+    result = plan(p, grid, Pose(128.0, 0.0, 0.0, 6.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.SEARCH and result.slow_mode and result.reached_goal
+    assert points[:, 2].max() <= CONFIG.slow_speed_mps + 1e-9
+    assert points[-1, 2] == 0.0
+    assert_safe(points, grid)
+    dense = densified(points[:, :2])
+    through_first = dense[np.abs(dense[:, 0] - 140.5) < 0.5]
+    through_second = dense[np.abs(dense[:, 0] - 147.5) < 0.5]
+    assert np.all(through_first[:, 1] > 3.5) and np.all(through_second[:, 1] < -3.5)
+    assert points[-1, 0] == pytest.approx(128.0 + CONFIG.horizon_m, abs=0.5)  # on to the horizon
+    again = plan(p, grid, Pose(128.5, 0.0, 0.0, 1.0))
+    assert again.mode is PlanMode.SEARCH and again.path.path_id == result.path.path_id  # kept while clear
+
+
+def test_a_gap_narrower_than_the_lattice_is_found_cell_by_cell() -> None:
+    """Lethal cell centres 2.8 m apart across a wall leave one row of free cells for the search
+    (clearance plus slack is 1.27 m each side), at north 0.3: off the stride-3 lattice through
+    the vehicle's row (0.1, 0.7, ...). The search retries on every cell and gets through.
+    Candidates are held to the centre line here, which passes the gap 1.1 m from a wall cell."""
+    p = planner(max_offsets=1)
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -1.0, 142.0, 1.6)
+    assert CONFIG.search_stride == 3
+    result = plan(p, grid, Pose(130.0, 0.0, 0.0, 2.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.SEARCH and result.reached_goal
+    assert_safe(points, grid)
+    crossing = densified(points[:, :2])
+    crossing = crossing[np.abs(crossing[:, 0] - 140.5) < 0.6]
+    assert np.all(np.abs(crossing[:, 1] - 0.3) < 0.2)
+
+
+def test_a_far_chicane_is_approached_at_speed_and_stopped_short_of() -> None:
+    """Far ahead, a candidate clear for well over the stopping distance will do while the search
+    confirms there is a way through: drive on, planning a stop short of the chicane."""
+    p = planner()
+    grid = chicane(field())
+    result = plan(p, grid, Pose(100.0, 0.0, 0.0, 6.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and result.partial and not result.slow_mode
+    assert points[:5, 2].min() >= 6.0 and points[-1, 2] == 0.0
+    nose = CONFIG.vehicle_length_m - CONFIG.rear_overhang_m
+    assert points[-1, 0] + nose <= 147.1 - CONFIG.clearance_m  # through the first gap, short of the second wall
+    assert_safe(points, grid)
+    # At the planned stop, between the walls, the rest takes the search, at slow speed.
+    closer = plan(p, grid, Pose(points[-1, 0], points[-1, 1], 0.0, 0.3))
+    assert closer.mode is PlanMode.SEARCH and closer.slow_mode
+
+
+def test_a_blocked_corridor_stops_short_with_the_nose_clear() -> None:
+    p = planner()
+    grid = field().box(150.0, -15.0, 151.0, 15.0)
+    result = plan(p, grid, Pose(110.0, 0.0, 0.0, 9.0))
+    points = path_points(result.path)
+    assert result.slow_mode and not result.reached_goal
+    assert points[:, 2].max() <= 1.0 + 1e-9 and points[-1, 2] == 0.0
+    assert_safe(points, grid)
+    nose = 2.1 - 0.4
+    assert points[-1, 0] + nose <= 150.0 - CONFIG.clearance_m + 1e-6
+    assert points[-1, 0] > 150.0 - CONFIG.clearance_m - nose - 1.0  # as far as it can go
+
+
+def test_a_vehicle_already_too_close_to_a_hazard_stands_still() -> None:
+    p = planner()
+    grid = field().disc(111.0, 0.5, 0.4)
+    result = plan(p, grid, Pose(110.0, 0.0, 0.0, 3.0))
+    assert result.mode is PlanMode.STOP and result.slow_mode
+    assert len(result.path.points) == 1 and result.path.points[0].speed_mps == 0.0
+
+
+def test_outside_the_corridor_or_the_window_means_stop() -> None:
+    p = planner()
+    assert plan(p, field(), Pose(110.0, 9.0, 0.0, 3.0)).mode is PlanMode.STOP
+    p.reset()
+    assert plan(p, field(400.0), Pose(110.0, 0.0, 0.0, 3.0)).mode is PlanMode.STOP
+
+
+def test_the_health_limit_caps_every_speed() -> None:
+    result = plan(planner(), field(), Pose(100.0, 0.0, 0.0, 8.0), max_speed=3.0)
+    assert path_points(result.path)[:, 2].max() <= 3.0 + 1e-9
+    stopped = plan(planner(), field(), Pose(100.0, 0.0, 0.0, 8.0), max_speed=0.0)
+    assert path_points(stopped.path)[:, 2].max() == 0.0
+
+
+def test_speeds_respect_the_turn_and_the_end_of_the_course() -> None:
+    corner = course_through([(0.0, 0.0), (100.0, 0.0), (100.0, 60.0)], half_width_m=9.144)
+    p = planner(corner)
+    grid = Map.around(100.0, 20.0, 60.0, 60.0)
+    result = plan(p, grid, Pose(90.0, 0.0, 0.0, 8.0))
+    points = path_points(result.path)
+    s, _ = p.frame.locate(points[:, 0], points[:, 1], 90.0)
+    assert np.all(points[:, 2] <= p.frame.speed_at(s) + 1e-9)
+    assert points[:, 2].min() < 5.0  # slowed for the corner
+    assert points[-1, 1] == pytest.approx(60.0) and points[-1, 2] == 0.0  # the course ends within the horizon
+
+
+def test_path_ids_change_only_on_a_new_plan() -> None:
+    p = Planner.for_course(COURSE, CONFIG, first_path_id=500)
+    grid = field()
+    ids = [plan(p, grid, Pose(100.0 + i, 0.0, 0.0, 8.0)).path.path_id for i in range(3)]
+    assert ids == [500, 500, 500]
+    grid.disc(150.0, 0.0, 1.0)
+    assert plan(p, grid, Pose(103.0, 0.0, 0.0, 8.0)).path.path_id == 501
+
+
+def test_driving_the_plans_through_an_obstacle_field() -> None:
+    """Closed loop: step a few metres along each published path and plan again; every path is
+    safe and the vehicle gets past all the obstacles."""
+    rng = np.random.default_rng(12)
+    course = straight_course(400.0)
+    p = planner(course)
+    obstacles = [(rng.uniform(120.0, 180.0), rng.uniform(-7.0, 7.0), rng.uniform(0.3, 1.2)) for _ in range(12)]
+    pose = Pose(100.0, 0.0, 0.0, 6.0)
+    modes = set()
+    for _ in range(40):
+        grid = Map.around(pose.east_m + 50.0, 0.0, 120.0, 30.0)
+        for east, north, radius in obstacles:
+            grid.disc(east, north, radius)
+        result = plan(p, grid, pose)
+        modes.add(result.mode)
+        points = path_points(result.path)
+        assert_safe(points, grid, course)
+        if len(points) < 2:
+            break
+        ahead = np.searchsorted(np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points[:, :2], axis=0).T))]), 3.0)
+        target = points[min(ahead, len(points) - 1)]
+        heading = math.atan2(target[1] - pose.north_m, target[0] - pose.east_m)
+        pose = Pose(float(target[0]), float(target[1]), heading, max(float(target[2]), 1.0))
+    assert pose.east_m > 185.0
+    assert PlanMode.REPLAN in modes
+
+
+def test_partial_paths_can_be_switched_off() -> None:
+    result = plan(planner(allow_partial=False), chicane(field()), Pose(100.0, 0.0, 0.0, 6.0))
+    assert result.mode is PlanMode.SEARCH and result.slow_mode and not result.partial
+
+
+def test_the_path_is_a_valid_protocol_message_from_a_navigation_state() -> None:
+    state = VehicleState(100.0, 0.0, 0.0, 0.0, 8.0, 8.0, 0.0, 0.0, (0.0,) * 25, NavQuality.DGPS)
+    result = plan(planner(), field().disc(140.0, 0.0, 1.0), state)
+    codec = Codec(None)
+    data = codec.encode(b"PATH", result.path, source_id=5, seq=1, t_meas_ns=1, t_pub_ns=2)
+    opened = codec.open(data)
+    decoded = decode_body(opened.type_id, opened.body)
+    assert isinstance(decoded, Path) and decoded == result.path
+    assert len(data) < 8192
+
+
+@pytest.mark.parametrize(
+    ("pose", "max_speed", "message"),
+    [
+        (Pose(float("nan"), 0.0), 5.0, "finite"),
+        (Pose(100.0, 0.0, 0.0, -1.0), 5.0, "negative"),
+        (Pose(100.0, 0.0), -1.0, "negative"),
+    ],
+)
+def test_bad_inputs_are_refused(pose: Pose, max_speed: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        plan(planner(), field(), pose, max_speed)
+
+
+def test_a_map_of_the_wrong_shape_is_refused() -> None:
+    grid = field()
+    with pytest.raises(ValueError, match="shape"):
+        planner().plan(Pose(100.0, 0.0), grid.window, grid.hazard[:, :-1], grid.cost, 5.0)
+
+
+def test_the_default_footprint_is_the_simulated_vehicle() -> None:
+    vehicle = VehicleParams()
+    assert CONFIG.vehicle_width_m == vehicle.width_m
+    assert CONFIG.vehicle_length_m == vehicle.length_m
+    assert CONFIG.rear_overhang_m == vehicle.rear_overhang_m
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [{"margin_m": -0.1}, {"search_stride": 0}, {"rear_overhang_m": 3.0}, {"transition_times_s": ()}],
+)
+def test_bad_settings_are_refused(changes: dict[str, object]) -> None:
+    with pytest.raises(ValueError, match="PlannerConfig"):
+        dataclasses.replace(CONFIG, **changes)
