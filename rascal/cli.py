@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
         groups[group].add_parser(tool, help=f"{help_text} (rascal {group} {tool} --help)")
 
     demo = commands.add_parser(
-        "demo", help="the simulated vehicle with every sensor on the loopback bus, and a lidar failure"
+        "demo", help="the whole stack drives the default scenario from start to finish (rascal run, localhost)"
     )
     demo.set_defaults(handler=_demo)
 
@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _demo(args: argparse.Namespace) -> int:
     from rascal.demo import run_demo
 
-    return run_demo(args.bus)
+    return run_demo()
 
 
 def _keygen(args: argparse.Namespace) -> int:

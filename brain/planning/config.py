@@ -67,9 +67,11 @@ class PlannerConfig:
     max_accel_mps2: float = setting(1.5, "longitudinal acceleration limit")
     max_decel_mps2: float = setting(2.0, "planned braking limit")
     curvature_window_m: float = setting(3.0, "path length curvature is averaged over")
-    near_hazard_speed_mps: float = setting(2.0, "speed allowed at the minimum clearance to a hazard")
-    hazard_speed_gain_mps_per_m: float = setting(2.0, "extra speed allowed per metre of further clearance")
-    caution_probability: float = setting(0.5, "hazard probability from which a cell slows the vehicle nearby")
+    near_hazard_speed_mps: float = setting(3.0, "speed allowed at the minimum clearance to a hazard")
+    hazard_speed_gain_mps_per_m: float = setting(4.0, "extra speed allowed per metre of further clearance")
+    caution_probability: float = setting(
+        0.6, "hazard probability from which a cell slows the vehicle nearby (unknown cells are 0.5: not caution)"
+    )
     cost_speed_gain: float = setting(0.5, "speed divided by (1 + gain x footprint-mean cost)")
 
     def __post_init__(self) -> None:

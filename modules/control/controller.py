@@ -67,6 +67,11 @@ class ControllerSettings:
     stop_speed_mps: float = 0.3  # below it, with a zero target, the brake is simply held
     slow_mode_speed_mps: float = 1.0  # RASCAL: no safe path left -> 1 m/s
     max_cross_track_m: float = 5.0  # further from the path than this: brake, the path is not ours
+    # The steering asks for more than the wheels' limit: the path turns tighter than the vehicle
+    # can at this speed (or the vehicle is rejoining it). Slow to the speed at which the tightest
+    # turn takes this lateral acceleration, until the steering has room again.
+    saturated_share: float = 0.9  # of max steering
+    saturated_lateral_accel_mps2: float = 2.0
     window_back_m: float = 2.0
     window_ahead_m: float = 6.0
     curvature_window_m: float = 2.0
@@ -81,6 +86,8 @@ class ControllerSettings:
             "stop_speed_mps",
             "max_cross_track_m",
             "window_ahead_m",
+            "saturated_share",
+            "saturated_lateral_accel_mps2",
         )
         for name in positive:
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
@@ -106,6 +113,7 @@ class VehicleController:
         self.pd = PdHeadingController(s.pd)
         self.speed = PiSpeedController(s.speed)
         self.steering_rad = 0.0  # the last commanded (already limited) wheel angle
+        self._steering_wanted_rad = 0.0  # what the steering law asked for, before the limits
         self.slow_mode = False
         self._idle_s = 0.0  # time since the last drive step, for the tracker's search window
         self._last_speed_mps = 0.0
@@ -157,6 +165,7 @@ class VehicleController:
             bearing = math.atan2(look_north - pose.north_m, look_east - pose.east_m)
             heading_error = wrap_angle(bearing - pose.yaw_rad)
             target = gain * self.pd.steer(heading_error, dt_s)
+        self._steering_wanted_rad = target
         self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
 
         target_speed = self._target_speed(where, speed)
@@ -183,6 +192,10 @@ class VehicleController:
             target = 0.0
         if self.slow_mode:
             target = min(target, s.slow_mode_speed_mps)
+        limit = s.limits.max_steering_rad
+        if abs(self._steering_wanted_rad) >= s.saturated_share * limit:
+            tightest_curvature = math.tan(limit) / s.wheelbase_m
+            target = min(target, math.sqrt(s.saturated_lateral_accel_mps2 / tightest_curvature))
         return target
 
     def _hold(self, speed_mps: float, reason: str, mode: Mode) -> Output:

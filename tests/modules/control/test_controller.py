@@ -105,3 +105,14 @@ def test_driving_without_a_path_is_a_local_error() -> None:
 def test_bad_settings_are_refused(kwargs: dict[str, object]) -> None:
     with pytest.raises(ValueError):
         ControllerSettings(**kwargs)  # type: ignore[arg-type]
+
+
+def test_saturated_steering_slows_to_the_tightest_turns_safe_speed() -> None:
+    """3 m beside a 10 m/s path the steering law asks for more than the wheels can give: the
+    target drops to the speed at which the tightest turn takes 2 m/s^2; on the path it does not."""
+    settings = ControllerSettings()
+    tightest_speed = math.sqrt(2.0 * settings.wheelbase_m / math.tan(settings.limits.max_steering_rad))
+    off = controller(straight(10.0)).drive(Pose(5.0, -3.0, 0.0, 8.0), DT)
+    on = controller(straight(10.0)).drive(Pose(5.0, 0.0, 0.0, 8.0), DT)
+    assert off.target_speed_mps == pytest.approx(tightest_speed) and tightest_speed < 2.5
+    assert on.target_speed_mps == pytest.approx(10.0)
