@@ -92,3 +92,13 @@ def test_mistakes_name_the_key(tmp_path: Path, edit, message: str) -> None:  # t
 def test_a_missing_file(tmp_path: Path) -> None:
     with pytest.raises(DeploymentError, match="not found"):
         load_deployment(tmp_path / "none.toml")
+
+
+def test_the_three_host_vehicle_deployment_splits_the_stack() -> None:
+    deployment = load_deployment(DEFAULT_DEPLOYMENT.parent / "vehicle-3hosts.toml")
+    by_host = {host: {spec.label for spec in deployment.on_host(host)} for host in deployment.hosts}
+    assert {"esvs", "stereo_camera", "lidar_h_left", "nav_sensors"} <= by_host["sensors"]
+    assert {"brain", "ins", "time_service"} <= by_host["brainbox"]
+    assert {"control", "sim"} <= by_host["drive"]
+    assert sum(len(labels) for labels in by_host.values()) == len(deployment.modules)
+    assert "iface=" in deployment.bus
