@@ -10,6 +10,10 @@ prints bad-pixel rates (> 1 px, > 3 px) and density for both matchers, counted t
 Ground truth formats: KITTI 16-bit PNG (value / 256, 0 invalid), Middlebury 8-bit PNG or PGM
 (value / scale, 0 invalid; the scale is per data set, so it must be given), PFM (value / scale,
 +inf invalid, rows stored bottom to top).
+
+``rascal esvs eval --simulated [--scenes N] [--clear-frames M] [--seed S]`` instead scores the whole
+obstacle pipeline on rendered scenes with known obstacles: recall, precision and range error by
+range band, and false descriptors on clear terrain (``modules.esvs.camera.scenes_eval``).
 """
 
 from __future__ import annotations
@@ -244,7 +248,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--gt", type=Path, help="left-view ground-truth disparity: PNG, PGM or PFM")
     parser.add_argument("--gt-scale", type=float, help="disparity = stored value / this (KITTI 256, PFM 1)")
     parser.add_argument("--out", type=Path, help="also write our disparity here as PFM (+inf where none)")
+    simulated = parser.add_argument_group("simulated scenes (obstacle detection, not disparity)")
+    simulated.add_argument("--simulated", action="store_true", help="score obstacles on rendered scenes instead")
+    simulated.add_argument("--scenes", type=int, help="scenes with obstacles (default 100)")
+    simulated.add_argument("--clear-frames", type=int, help="frames of clear terrain (default 200)")
+    simulated.add_argument("--seed", type=int, help="seed of the random scenes (default 2005)")
     args = parser.parse_args(argv)
+    if args.simulated:
+        return _simulated(parser, args)
+    if args.scenes is not None or args.clear_frames is not None or args.seed is not None:
+        parser.error("--scenes, --clear-frames and --seed go with --simulated")
     try:
         if args.pair is not None:
             if args.left or args.right or args.gt:
@@ -265,6 +278,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.out is not None:
         disparity = runs["ours"][2]
         write_pfm(args.out, np.where(np.isfinite(disparity), disparity, np.inf))
+    return 0
+
+
+def _simulated(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    if any(value is not None for value in (args.pair, args.left, args.right, args.gt, args.gt_scale, args.out)):
+        parser.error("--simulated renders its own scenes: no --pair, --left, --right, --gt, --gt-scale or --out")
+    from modules.esvs.camera.scenes_eval import evaluate as evaluate_scenes
+    from modules.esvs.camera.scenes_eval import format_report
+
+    try:
+        result = evaluate_scenes(
+            scenes=100 if args.scenes is None else args.scenes,
+            clear_frames=200 if args.clear_frames is None else args.clear_frames,
+            seed=2005 if args.seed is None else args.seed,
+        )
+    except ValueError as error:
+        print(f"rascal esvs eval: {error}", file=sys.stderr)
+        return 2
+    print(format_report(result))
     return 0
 
 

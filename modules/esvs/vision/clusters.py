@@ -31,12 +31,15 @@ from protocol.messages import Obstacle
 @dataclass(frozen=True)
 class ClusterParams:
     column_bin_px: int = 4
-    disparity_bin_px: float = 0.5
+    disparity_bin_px: float = 0.25  # 0.5 merged obstacles ~1 px apart (simulated-scene recall 94.5 -> 95.8 %)
     min_cell_points: int = 2  # a cell with fewer points is noise
     min_points: int = 25  # an obstacle needs this many points
     confidence_points: float = 150.0  # confidence = (1 - exp(-points / this)) * consistency
     consistency_px: float = 0.75  # consistency = share of points this close to the median disparity
     max_obstacles: int = 16  # nearest first: 16 descriptors fit one 1400 B datagram
+    # A cluster topping out this low is the far wall of a ditch seen from above (SGBM gives the
+    # wall one disparity, so it passes Algorithm 1), not an obstacle. Assumes level ground.
+    min_top_m: float = 0.15
 
     def __post_init__(self) -> None:
         if self.column_bin_px < 1 or self.disparity_bin_px <= 0 or self.min_points < 1:
@@ -85,7 +88,9 @@ def describe(
     for start, stop in itertools.pairwise(bounds):
         if stop - start >= params.min_points:
             members = order[start:stop]
-            obstacles.append(_descriptor(points[members], d[members], params))
+            obstacle = _descriptor(points[members], d[members], params)
+            if obstacle.height_m >= params.min_top_m:
+                obstacles.append(obstacle)
     obstacles.sort(key=lambda o: o.range_m)
     return tuple(obstacles[: params.max_obstacles])
 
