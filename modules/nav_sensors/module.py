@@ -79,6 +79,9 @@ def sensor_generators(seed: int, seed_offset: int) -> dict[str, np.random.Genera
     return {name: np.random.default_rng(child) for name, child in zip(SENSOR_STREAMS, children, strict=True)}
 
 
+SPACING_SMOOTHING = 0.05  # weight of each new sample spacing in the gate's running mean
+
+
 class RateGate:
     """Picks the samples of an irregular or faster stream that fall on a ``rate_hz`` grid."""
 
@@ -86,14 +89,23 @@ class RateGate:
         if rate_hz <= 0:
             raise ValueError(f"rate must be positive, not {rate_hz}")
         self.period_ns = round(1e9 / rate_hz)
-        # A truth stamp a hair before a grid point (a simulator stepping by a rounded dt) still
-        # counts as on it; 1 % of the period is far below any truth sample spacing that matters.
-        self._slack_ns = self.period_ns // 100
+        # A sample within half the stream's mean spacing before a grid point counts as on it:
+        # scenario time advances by the time that really passed between simulator ticks, so
+        # samples jitter around the grid, and a stream as fast as the grid must fill every slot.
         self._last_slot = -1
+        self._last_elapsed_ns: int | None = None
+        self._mean_spacing_ns: float | None = None  # known from the second sample on
 
     def due(self, elapsed_ns: int) -> bool:
         """Whether the sample ``elapsed_ns`` after the grid's start opens a new slot."""
-        slot = (elapsed_ns + self._slack_ns) // self.period_ns
+        if self._last_elapsed_ns is not None:
+            spacing = max(0, elapsed_ns - self._last_elapsed_ns)
+            mean = self._mean_spacing_ns
+            self._mean_spacing_ns = spacing if mean is None else mean + SPACING_SMOOTHING * (spacing - mean)
+        self._last_elapsed_ns = elapsed_ns
+        mean = self._mean_spacing_ns if self._mean_spacing_ns is not None else 0.0
+        slack = int(min(self.period_ns, mean) // 2)
+        slot = (elapsed_ns + slack) // self.period_ns
         if slot <= self._last_slot:
             return False
         self._last_slot = slot
@@ -131,10 +143,8 @@ class SensorSuite:
             return []
         self.last_ns = t_meas_ns
         self.samples += 1
-        # Sample rates and faults both run on the simulator's scenario clock: it advances by
-        # exact steps (shared-time stamps jitter with the simulator's loop, and a jittered
-        # stream on a grid of its own rate would skip samples), and every sensor process sees
-        # the same schedule however late it started.
+        # Sample rates and faults both run on the simulator's scenario clock, so every sensor
+        # process sees the same schedule however late it started.
         t_s = truth.scenario_time_s
         scenario_ns = round(t_s * 1e9)
         due = {channel for channel, gate in self._gates.items() if gate.due(scenario_ns)}

@@ -7,8 +7,10 @@ import uuid
 from collections import Counter
 from typing import Any
 
+import numpy as np
+
 from brain.corridor import GeodeticOrigin
-from modules.nav_sensors.module import NavSensors, NavSensorsConfig, ScenarioInputs, SensorSuite
+from modules.nav_sensors.module import NavSensors, NavSensorsConfig, RateGate, ScenarioInputs, SensorSuite
 from modules.sim.world import FaultKind, SensorFault
 from protocol import channels
 from protocol.auth import Keyring
@@ -109,3 +111,13 @@ def test_a_reordered_truth_sample_is_dropped() -> None:
     assert suite.step(driving(0.0), 2 * TRUTH_PERIOD_NS)
     assert suite.step(driving(0.0), TRUTH_PERIOD_NS) == []
     assert suite.dropped == 1
+
+
+def test_a_jittered_stream_fills_every_slot_of_a_grid_as_fast_as_itself() -> None:
+    """Scenario time jitters with the simulator's ticks (it is the time that really passed):
+    100 Hz truth with +-3 ms jitter still gives 100 IMU samples a second and 10 GPS fixes."""
+    rng = np.random.default_rng(1)
+    stamps = [0] + [round((k * 0.01 + rng.uniform(-0.003, 0.003)) * 1e9) for k in range(1, 1000)]
+    imu, gps = RateGate(100.0), RateGate(10.0)
+    assert sum(imu.due(t) for t in stamps) == 1000
+    assert sum(gps.due(t) for t in stamps) == 100
