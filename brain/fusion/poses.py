@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from protocol.messages import NavQuality, VehicleState
+from rascal.angles import wrap_angle
 
 
 class Pose(NamedTuple):
@@ -47,11 +48,6 @@ class _Entry(NamedTuple):
     vel_east_mps: float
     vel_north_mps: float
     yaw_rate_radps: float
-
-
-def wrap_angle(angle_rad: float) -> float:
-    """``angle_rad`` in [-pi, pi)."""
-    return (angle_rad + math.pi) % (2 * math.pi) - math.pi
 
 
 class PoseHistory:

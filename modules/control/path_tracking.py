@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocol.messages import PathPoint
+from rascal.angles import wrap_angle
 
 FloatArray = NDArray[np.float64]
 MIN_SEGMENT_M = 1e-3  # shorter steps are duplicates: they have no heading
@@ -44,11 +45,6 @@ class Projection(NamedTuple):
     curvature_1pm: float  # path curvature at s, left turn positive
     speed_mps: float  # target speed at s
     beyond_end_m: float  # how far past the last point (0 while on the path)
-
-
-def wrap_angle(angle_rad: float) -> float:
-    """``angle_rad`` in [-pi, pi]."""
-    return math.remainder(angle_rad, 2.0 * math.pi)
 
 
 class TrackedPath:

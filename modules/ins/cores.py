@@ -38,8 +38,8 @@ from modules.ins.model import (
     speed_h,
     speed_hx,
     transition,
-    wrap,
 )
+from rascal.angles import wrap_angle, wrap_angles
 
 FILTERS = ("ekf", "ukf")
 
@@ -128,23 +128,23 @@ def _propagate_sigmas(sigmas: np.ndarray, u: ImuInput) -> np.ndarray:
 def _state_mean(sigmas: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted mean with yaw averaged on the circle (as offsets from the first point)."""
     offsets = sigmas - sigmas[0]
-    offsets[:, YAW] = np.remainder(offsets[:, YAW] + math.pi, math.tau) - math.pi
+    offsets[:, YAW] = wrap_angles(offsets[:, YAW])
     return sigmas[0] + weights @ offsets
 
 
 def _state_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = np.subtract(a, b)
-    d[..., YAW] = np.remainder(d[..., YAW] + math.pi, math.tau) - math.pi
+    d[..., YAW] = wrap_angles(d[..., YAW])
     return d
 
 
 def _angle_mean(sigmas: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    offsets = np.remainder(sigmas - sigmas[0] + math.pi, math.tau) - math.pi
+    offsets = wrap_angles(sigmas - sigmas[0])
     return sigmas[0] + weights @ offsets
 
 
 def _angle_residuals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.remainder(np.subtract(a, b) + math.pi, math.tau) - math.pi
+    return wrap_angles(np.subtract(a, b))
 
 
 def _unscented_transform(
@@ -257,7 +257,7 @@ class UkfCore:
         ukf = self._ukf
         ukf.Q = np.diag(self._q_rate * u.dt_s)
         ukf.predict(dt=u.dt_s, UT=_unscented_transform, u=u)
-        ukf.x[YAW] = wrap(float(ukf.x[YAW]))
+        ukf.x[YAW] = wrap_angle(float(ukf.x[YAW]))
 
     def update_gps(self, z: np.ndarray, R: np.ndarray) -> None:
         self._ukf.update_points(z, R, _gps_points, np.subtract, None)
@@ -267,4 +267,4 @@ class UkfCore:
 
     def update_mag(self, z: np.ndarray, R: np.ndarray, bias_index: int) -> None:
         self._ukf.update_points(z, R, self._mag_points[bias_index], _angle_residuals, _angle_mean)
-        self._ukf.x[YAW] = wrap(float(self._ukf.x[YAW]))
+        self._ukf.x[YAW] = wrap_angle(float(self._ukf.x[YAW]))

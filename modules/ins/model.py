@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rascal.angles import wrap_angle
+
 E, N, YAW, SPD, BG, SCALE, BM1, BM2, BA = range(9)
 DIM_X = 9
 BIAS_OF_MAG = {1: BM1, 2: BM2}
@@ -71,11 +73,6 @@ class ImuInput:
     dt_s: float
 
 
-def wrap(angle_rad: float) -> float:
-    """``angle_rad`` wrapped into [-pi, pi]."""
-    return math.remainder(angle_rad, math.tau)
-
-
 def propagate(x: np.ndarray, u: ImuInput) -> np.ndarray:
     """The state after ``u``: turn and accelerate, then move along the mid-step heading."""
     dt = u.dt_s
@@ -86,7 +83,7 @@ def propagate(x: np.ndarray, u: ImuInput) -> np.ndarray:
     out = x.copy()
     out[E] += mean_speed * dt * math.cos(heading)
     out[N] += mean_speed * dt * math.sin(heading)
-    out[YAW] = wrap(x[YAW] + rate * dt)
+    out[YAW] = wrap_angle(x[YAW] + rate * dt)
     out[SPD] += accel * dt
     return out
 
@@ -161,4 +158,4 @@ def mag_hx(x: np.ndarray, bias: int) -> np.ndarray:
 
 
 def angle_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([wrap(float(a[0] - b[0]))])
+    return np.array([wrap_angle(float(a[0] - b[0]))])

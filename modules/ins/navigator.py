@@ -40,9 +40,9 @@ from modules.ins.model import (
     process_noise_rate,
     propagate,
     transition,
-    wrap,
 )
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, VehicleState, WheelSpeed
+from rascal.angles import wrap_angle
 
 UNINITIALISED_VARIANCE = 1e12  # what state() reports before the filter has a solution
 
@@ -245,7 +245,7 @@ class InsFilter:
         speed = self._last_speed if self._last_speed and abs(self._last_speed[0] - fix.t_ns) <= window_ns else None
         x = np.zeros(DIM_X)
         x[E], x[N] = fix.z
-        x[YAW] = wrap(math.pi / 2 - mag.heading_from_north_rad)
+        x[YAW] = wrap_angle(math.pi / 2 - mag.heading_from_north_rad)
         x[SPD] = speed[1] if speed else 0.0
         x[SCALE] = 1.0
         speed_std = p.initial_speed_std_mps if speed else p.unknown_speed_std_mps
@@ -406,5 +406,5 @@ class InsFilter:
         """Yaw back into [-pi, pi] (an update can push it over) and P exactly symmetric (round-off
         in F P F' and the Joseph form leaves it asymmetric in the last bits, which accumulates)."""
         core = self._core
-        core.x[YAW] = wrap(core.x[YAW])
+        core.x[YAW] = wrap_angle(core.x[YAW])
         core.P = 0.5 * (core.P + core.P.T)

@@ -37,6 +37,7 @@ import pymap3d
 from brain.corridor import GeodeticOrigin
 from modules.sim.world import FaultKind, SensorFault, World
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, WheelSpeed
+from rascal.angles import wrap_angle
 
 STANDARD_GRAVITY_MPS2 = 9.80665  # defines the milli-g of accelerometer specifications
 # The simulated world's gravity: the vehicle model (modules/sim/vehicle.py) uses the same.
@@ -69,11 +70,6 @@ class TruthState(Protocol):
 
     @property
     def scenario_time_s(self) -> float: ...
-
-
-def wrap_angle(angle_rad: float) -> float:
-    """``angle_rad`` wrapped into [-pi, pi]."""
-    return math.remainder(angle_rad, math.tau)
 
 
 class GaussMarkov:

@@ -34,6 +34,7 @@ from modules.sim.vehicle import VehicleParams, VehicleState, step
 from modules.sim.world import FaultKind, SensorFault
 from protocol.messages import ActuatorCommand, GpsFix, ImuSample, MagHeading, WheelSpeed
 from protocol.messages import VehicleState as NavState
+from rascal.angles import wrap_angles
 
 ORIGIN = GeodeticOrigin(35.0, -117.0, 700.0)
 STEP_NS = 10_000_000  # the simulator's 100 Hz
@@ -255,7 +256,7 @@ def errors(result: Run, truth: Sequence[Truth]) -> Errors:
     north = np.array([t.north_m for t in truth])
     yaw = np.array([t.yaw_rad for t in truth])
     speed = np.array([t.speed_mps for t in truth])
-    yaw_error = np.remainder(result.yaw_rad - yaw + math.pi, math.tau) - math.pi
+    yaw_error = wrap_angles(result.yaw_rad - yaw)
     return Errors(np.hypot(result.east_m - east, result.north_m - north), yaw_error, result.speed_mps - speed)
 
 
