@@ -255,7 +255,11 @@ class HazardFusion:
                 continue
             x_to = min(border.x_max_m, border.x_min_m + MAX_BORDER_M)
             x = np.linspace(border.x_min_m, x_to, max(2, math.ceil(x_to - border.x_min_m) + 1))
-            y = border.c0_m + border.c1 * x + border.c2_per_m * x * x
+            with np.errstate(over="ignore", invalid="ignore"):
+                y = border.c0_m + border.c1 * x + border.c2_per_m * x * x
+            if not np.all(np.isfinite(y)):  # finite but absurd coefficients
+                self.stats.bad_descriptor += 1
+                continue
             line = np.column_stack((x, y))
             belief = float(np.clip(border.confidence, 0.0, 1.0)) * weight
             for shift, outside in ((border.side * band, True), (-border.side * band, False)):
