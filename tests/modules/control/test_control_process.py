@@ -13,7 +13,6 @@ import pytest
 
 from modules.sim.scenario import load_scenario
 from protocol import channels
-from protocol.auth import load_keyring
 from protocol.codec import Envelope
 from protocol.messages import (
     ActuatorCommand,
@@ -25,10 +24,8 @@ from protocol.messages import (
     StopMode,
     VehicleState,
 )
-from rascal.bus import Bus
-from rascal.clock import SharedClock
-from rascal.timeclient import TimeClient
 from tests.conftest import Processes
+from tests.integration.listener import Listener
 from tests.modules.control.closed_loop import signed_distance
 
 pytestmark = pytest.mark.slow
@@ -53,17 +50,15 @@ class Stand:
     """The test's side of the bus: INS stand-in, planner stand-in, recorder of commands."""
 
     def __init__(self, bus_url: str, key_file: FilePath, scenario: FilePath) -> None:
-        self.clock = SharedClock()
-        self.bus = Bus.open(bus_url, source_id=920, clock=self.clock, keyring=load_keyring(key_file))
-        self.time_client = TimeClient(self.bus, self.clock)
+        self.listener = Listener(bus_url, key_file, source_id=920)
+        self.bus = self.listener.bus
+        self.listener.every(0.2, self.send_path)
         self.route = load_scenario(scenario).route
         self.truth: SimTruth | None = None
         self.commands: list[tuple[float, ActuatorCommand]] = []  # (monotonic arrival, command)
         self.cross_track: list[float] = []
         self.publish_path = True
         self._hint = 0
-        self._next_sync = 0.0
-        self._next_path = 0.0
         self.bus.subscribe(channels.SIM_TRUTH, self.on_truth)
         self.bus.subscribe(channels.ACTUATOR_COMMAND, lambda msg, _env: self.commands.append((time.monotonic(), msg)))
 
@@ -100,20 +95,12 @@ class Stand:
         )
         return Path(1, points, False)
 
+    def send_path(self) -> None:
+        if self.publish_path:
+            self.bus.publish(channels.PATH, self.path())
+
     def run_until(self, done: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            now = time.monotonic()
-            if now >= self._next_sync:
-                self.time_client.request()
-                self._next_sync = now + 0.1
-            if self.publish_path and now >= self._next_path:
-                self.bus.publish(channels.PATH, self.path())
-                self._next_path = now + 0.2
-            self.bus.poll(0.005)
-            if done():
-                return True
-        return False
+        return self.listener.wait_until(done, timeout_s)
 
     def speed(self) -> float:
         return self.truth.speed_mps if self.truth else 0.0
@@ -174,4 +161,4 @@ def test_control_drives_the_simulated_vehicle_and_stops_it_when_told_or_blind(
         assert all(cmd.brake == 1.0 and cmd.stop_reason == "estop: test e-stop" for cmd in latest)
         assert stand.speed() == 0.0
     finally:
-        stand.bus.close()
+        stand.listener.close()
