@@ -27,6 +27,6 @@ def run_demo(runs_dir: Path = Path("runs")) -> int:
         f"demo {'OK' if ok else 'FAILED'}: finished {drive.get('finished')}, "
         f"{100 * drive.get('completion', 0):.1f} % of {drive.get('route_length_m', 0):.0f} m in "
         f"{drive.get('time_s', 0):.0f} s, collisions {drive.get('collisions')}, "
-        f"corridor exits {drive.get('corridor_exits')}; report in {run_dir}/"
+        f"corridor exits {drive.get('corridor_exits')}; logs, run.mcap and summary.json in {run_dir}/"
     )
     return 0 if ok else 1
