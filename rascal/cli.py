@@ -11,12 +11,14 @@ from brain.rddf_cli import add_rddf_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
 from rascal.logtools import add_log_commands
+from rascal.units import add_deploy_commands
 
 # Commands with their own argument parsers: `rascal WORDS ...` hands the rest to MODULE.main.
 DELEGATED_TOOLS: dict[tuple[str, ...], tuple[str, str]] = {
     ("run",): ("rascal.run", "run a deployment's modules here, supervised, until the course is done"),
     ("ins", "accuracy"): ("modules.nav_sensors.accuracy", "replay a scenario through the navigation filters"),
     ("esvs", "eval"): ("modules.esvs.evaluate", "stereo accuracy on a pair with ground truth"),
+    ("view",): ("rascal.view.cli", "a live bird's-eye view of the bus (or a recording) in the browser"),
 }
 
 
@@ -99,6 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_rddf_commands(commands)
     add_log_commands(commands)
+    add_deploy_commands(commands)
     return parser
 
 

@@ -5,7 +5,9 @@ A module subclasses :class:`Module`, declares its typed ``Config`` and reacts in
 (subscribe, declare inputs, add periodic tasks), in handlers, and in periodic tasks. The
 :class:`Runtime` owns the bus, the shared clock and the loop: it waits on the bus until the next
 task is due, runs due tasks by priority, measures activation jitter and overruns, answers or
-asks the time service, and publishes a ModuleStatus heartbeat every second.
+asks the time service, and publishes a ModuleStatus heartbeat every second. Under systemd it
+also tells the service manager it is ready and, with each heartbeat, that it is alive
+(rascal/sdnotify.py).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from protocol.messages import HealthEvent, ModuleState, ModuleStatus, Severity
 from rascal.bus import Bus
 from rascal.clock import Clock, SharedClock, SkewedLocal, WallClock
 from rascal.rtdb import Latest
+from rascal.sdnotify import Notifier
 from rascal.timeclient import TimeClient, TimeMaster
 from rascal.timesync import SyncState
 
@@ -113,6 +116,7 @@ class Runtime:
         self.time_master = TimeMaster(bus) if time_master else None
         self.time_client = TimeClient(bus, clock) if isinstance(clock, SharedClock) else None
         self._epoch_ns: int | None = None
+        self.notifier = Notifier()
 
     def add_task(
         self, name: str, fn: Callable[[], None], period_s: float, offset_s: float = 0.0, priority: int = 0
@@ -167,15 +171,18 @@ class Runtime:
             task.due_ns += self._epoch_ns
         heapq.heapify(self._tasks)
         self.state = ModuleState.OK
+        self.notifier.notify(READY="1", STATUS=f"{module.instance()} running")
         end_ns = None if duration_s is None else time.monotonic_ns() + int(duration_s * 1e9)
         try:
             while not self._stop and (end_ns is None or time.monotonic_ns() < end_ns):
                 self._iterate(end_ns)
         finally:
             self.state = ModuleState.STOPPING
+            self.notifier.notify(STOPPING="1")
             module.on_stop()
             self._heartbeat()
             self.bus.close()
+            self.notifier.close()
 
     def _iterate(self, end_ns: int | None) -> None:
         now = time.monotonic_ns()
@@ -229,6 +236,8 @@ class Runtime:
             module.status_detail(),
         )
         self.bus.publish(channels.MODULE_STATUS, status)
+        if state is not ModuleState.STOPPING:  # the watchdog hears the loop, as the supervisor does
+            self.notifier.notify(WATCHDOG="1", STATUS=status.detail or ModuleState(state).name)
         for task in self._tasks:
             task.timing = TaskTiming()
 

@@ -23,6 +23,7 @@ from protocol.codec import Envelope
 from protocol.messages import ModuleState, ModuleStatus, Severity
 from rascal.deployment import Deployment, ModuleSpec
 from rascal.module import Module, Runtime
+from rascal.sdnotify import NOTIFY_SOCKET_ENV
 
 CHECK_PERIOD_S = 0.05
 STARTUP_GRACE_S = 15.0  # a fresh process imports numpy, OpenCV...: no heartbeat is expected before this
@@ -163,20 +164,9 @@ class Supervisor(Module):
         spec = child.spec
         if child.restart_due_s is not None:
             child.restarts += 1
-        command = [
-            sys.executable,
-            "-m",
-            spec.python_module,
-            "--bus",
-            self.deployment.bus,
-            *spec.arguments(),
-            "--restarts",
-            str(child.restarts),
-        ]
-        env = dict(self.env)
+        command = module_command(self.deployment, spec, child.restarts)
+        env = module_environment(self.deployment, self.env)
         env[RUN_DIR_ENV] = str(self.log_dir.resolve())  # where a module may leave run artefacts
-        if self.deployment.key_file is not None:
-            env["RASCAL_KEY_FILE"] = str(self.deployment.key_file)
         log = (self.log_dir / f"{spec.label}.log").open("ab")
         nice = spec.nice
         child.process = subprocess.Popen(
@@ -192,6 +182,29 @@ class Supervisor(Module):
         child.started_s = time.monotonic()
         child.restart_due_s = None
         child.status = None
+
+
+def module_command(deployment: Deployment, spec: ModuleSpec, restarts: int = 0) -> list[str]:
+    """The command line of one module process of ``deployment``."""
+    return [
+        sys.executable,
+        "-m",
+        spec.python_module,
+        "--bus",
+        deployment.bus_on(spec.host),
+        *spec.arguments(),
+        "--restarts",
+        str(restarts),
+    ]
+
+
+def module_environment(deployment: Deployment, base: dict[str, str]) -> dict[str, str]:
+    """``base`` with the deployment's key file, and without a service manager's notification
+    socket: only the process systemd started may notify it (``NotifyAccess=main``)."""
+    env = {key: value for key, value in base.items() if key != NOTIFY_SOCKET_ENV}
+    if deployment.key_file is not None:
+        env["RASCAL_KEY_FILE"] = str(deployment.key_file)
+    return env
 
 
 def _describe_exit(code: int) -> str:
