@@ -23,7 +23,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import SplitResult, parse_qs, urlsplit
 
 from protocol.channels import DEFAULT_PORT_SPAN, port_offset
 
@@ -297,16 +297,31 @@ class UrlError(ValueError):
 
 
 def open_transport(url: str | None = None) -> Transport:
-    """Build the transport a URL names (``None``: ``$RASCAL_BUS_URL`` or the default)."""
+    """Build the transport a URL names (``None``: ``$RASCAL_BUS_URL`` or the default).
+
+    A ``faults=RULES`` option, else ``$RASCAL_FAULTS``, puts protocol.faults' link faults on the
+    receive side (in a URL, write ``+`` in a rule as ``%2B``)."""
+    from protocol import faults  # imports this module
+
     url = url or default_url()
     parts = urlsplit(url)
     query = {key: values[-1] for key, values in parse_qs(parts.query, keep_blank_values=True).items()}
-    if parts.scheme == "mem":
+    rules = query.pop("faults", None)
+    where = f"{url}: faults"
+    if rules is None:
+        rules, where = os.environ.get(faults.FAULTS_ENV, ""), f"${faults.FAULTS_ENV}"
+    transport = _open(url, parts, query)
+    return faults.wrap(transport, rules, where) if rules.strip() else transport
+
+
+def _open(url: str, parts: SplitResult, query: dict[str, str]) -> Transport:
+    scheme = parts.scheme
+    if scheme == "mem":
         return MemTransport(parts.netloc or parts.path or "default")
-    if parts.scheme == "zmq":
+    if scheme == "zmq":
         return ZmqSubscriberTransport(f"tcp://{parts.netloc}")
-    if parts.scheme != "udpm":
-        raise UrlError(f"{url}: unknown scheme {parts.scheme!r}; use udpm://, mem:// or zmq://")
+    if scheme != "udpm":
+        raise UrlError(f"{url}: unknown scheme {scheme!r}; use udpm://, mem:// or zmq://")
     return UdpMulticastTransport(_udp_config(url, parts.hostname, parts.port, query))
 
 
