@@ -177,7 +177,11 @@ def format_rules(rules: Iterable[FaultRule]) -> str:
             value = getattr(rule, f.name)
             if f.name != "channels" and value == getattr(default, f.name):
                 continue
-            parts.append(f"{f.name}={'|'.join(map(str, value)) if f.name == 'sources' else value}")
+            if f.name == "sources":
+                value = "|".join(map(str, value))
+            elif isinstance(value, float) and value.is_integer():
+                value = int(value)
+            parts.append(f"{f.name}={value}")
         chunks.append(",".join(parts))
     return ";".join(chunks)
 

@@ -21,9 +21,16 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     heartbeat_timeout_s = 3.0                 # the supervisor restarts a module this quiet
     set = { sensor = "lidar_h_left" }         # config overrides, as --set KEY=VALUE
 
+    [[faults]]                                # link faults on receivers (protocol/faults.py)
+    channels = "OBSTACLES_.*"                 # + loss_pct, delay_ms, jitter_ms, duplicate_pct,
+    loss_pct = 20                             #   reorder_pct, reorder_ms, corrupt_pct, seed, sources
+    modules = ["brain"]                       # receivers (default: every module); or to_hosts = [...]
+    from_hosts = ["sensorbox"]                # senders: from_hosts / from_modules (default: any)
+
 A module whose configuration has ``scenario``, ``course`` or ``origin`` settings gets the
 deployment's unless its ``set`` table overrides them, so every process shares one frame. Errors
-name the file and the key.
+name the file and the key. Each module's fault rules reach it as ``$RASCAL_FAULTS``, with the
+rule's seed mixed with the module's source id (repeatable, yet modules lose different datagrams).
 """
 
 from __future__ import annotations
@@ -34,12 +41,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
 from rascal.config import ConfigError, build_config
 from rascal.launch import module_class
 
 DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[1] / "deploy" / "localhost.toml"
 SHARED_SETTINGS = ("scenario", "course", "origin")
 LOCALHOST = "localhost"
+FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
 
 
 class DeploymentError(ValueError):
@@ -56,6 +65,7 @@ class ModuleSpec:
     heartbeat_timeout_s: float = 3.0
     settings: dict[str, str] = field(default_factory=dict)
     entry: str = ""  # the Python module to run, when it is not modules.<module> (the recorder)
+    faults: tuple[FaultRule, ...] = ()  # link faults on this module's receive side
 
     @property
     def python_module(self) -> str:
@@ -67,6 +77,10 @@ class ModuleSpec:
         for key, value in self.settings.items():
             args += ["--set", f"{key}={value}"]
         return args
+
+    def environment(self) -> dict[str, str]:
+        """Environment variables this module's process needs beyond the supervisor's own."""
+        return {FAULTS_ENV: format_rules(self.faults)} if self.faults else {}
 
 
 @dataclass(frozen=True)
@@ -113,7 +127,7 @@ class _Parser:
         return DeploymentError(f"{self.path}: {key}: {problem}")
 
     def deployment(self, doc: dict[str, Any]) -> Deployment:
-        self.keys(doc, "", {"deployment", "hosts", "modules"})
+        self.keys(doc, "", {"deployment", "hosts", "modules", "faults"})
         head = self.table(doc, "deployment")
         self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
         hosts_table = self.table(doc, "hosts", required=False)
@@ -142,6 +156,7 @@ class _Parser:
                     f"modules.{spec.label}.source_id", f"{spec.source_id} is already used by {seen[spec.source_id]}"
                 )
             seen[spec.source_id] = spec.label
+        specs = self.faults(doc.get("faults", []), specs, hosts)
         key_file = self.path_or_none(head, "key_file")
         return Deployment(
             self.path,
@@ -196,6 +211,45 @@ class _Parser:
         if not 1 <= source_id <= 0xFFFF:
             raise self.fail(f"{where}.source_id", f"expected 1..65535, got {source_id}")
         return ModuleSpec(label, name, host, source_id, nice, timeout, settings)
+
+    def faults(self, value: Any, specs: list[ModuleSpec], hosts: dict[str, str]) -> list[ModuleSpec]:
+        """Give each module the ``[[faults]]`` rules whose receivers include it."""
+        tables = [value] if isinstance(value, dict) else value
+        if not isinstance(tables, list) or not all(isinstance(table, dict) for table in tables):
+            raise self.fail("faults", "expected a table or an array of tables ([[faults]])")
+        by_label = {spec.label: spec for spec in specs}
+        rules: dict[str, list[FaultRule]] = {spec.label: [] for spec in specs}
+        for index, table in enumerate(tables):
+            where = f"faults[{index}]"
+            try:
+                rule = rule_from_mapping({k: v for k, v in table.items() if k not in FAULT_SELECTORS}, where)
+            except FaultConfigError as exc:
+                raise DeploymentError(f"{self.path}: {exc}") from None
+            receivers = self.names(table, where, "modules", by_label) or list(by_label)
+            to_hosts = self.names(table, where, "to_hosts", hosts)
+            if to_hosts:
+                receivers = [label for label in receivers if by_label[label].host in to_hosts]
+            from_modules = self.names(table, where, "from_modules", by_label)
+            from_hosts = self.names(table, where, "from_hosts", hosts)
+            if from_modules or from_hosts:
+                senders = {by_label[label].source_id for label in from_modules}
+                senders |= {spec.source_id for spec in specs if spec.host in from_hosts}
+                if not senders:
+                    raise self.fail(f"{where}.from_hosts", f"no modules run on {from_hosts}")
+                rule = dataclasses.replace(rule, sources=tuple(sorted(senders | set(rule.sources))))
+            for label in receivers:
+                seed = rule.seed * 0x10000 + by_label[label].source_id
+                rules[label].append(dataclasses.replace(rule, seed=seed))
+        return [dataclasses.replace(spec, faults=tuple(rules[spec.label])) for spec in specs]
+
+    def names(self, table: dict[str, Any], where: str, key: str, known: dict[str, Any]) -> list[str]:
+        value = table.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
+            raise self.fail(f"{where}.{key}", f"expected a list of names, got {value!r}")
+        for name in value:
+            if name not in known:
+                raise self.fail(f"{where}.{key}", f"{name!r} is not declared: {sorted(known)}")
+        return value
 
     # -- typed access ------------------------------------------------------------------------
 

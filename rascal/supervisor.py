@@ -167,6 +167,7 @@ class Supervisor(Module):
         command = module_command(self.deployment, spec, child.restarts)
         env = module_environment(self.deployment, self.env)
         env[RUN_DIR_ENV] = str(self.log_dir.resolve())  # where a module may leave run artefacts
+        env.update(spec.environment())  # e.g. the deployment's link faults for this module
         log = (self.log_dir / f"{spec.label}.log").open("ab")
         nice = spec.nice
         child.process = subprocess.Popen(
