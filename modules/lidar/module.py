@@ -80,8 +80,8 @@ class Lidar(Module):
     def sweep(self) -> None:
         """Scan from the newest true pose and publish, as the active faults allow. One output per
         new pose at most: without a new pose there is no new measurement. Faults are looked up at
-        the pose's scenario time, so all sensor processes apply them together however late each
-        one started."""
+        the pose's scenario time and course progress, so all sensor processes apply them together
+        however late each one started."""
         reading = self.truth.read(self.now_ns())
         if reading.validity is not Validity.FRESH or reading.envelope is None:
             return
@@ -91,7 +91,7 @@ class Lidar(Module):
             return
         self.last_truth_ns = t_meas_ns
         assert self.world is not None
-        faults = self.world.faults_for(self.config.sensor, truth.scenario_time_s)
+        faults = self.world.faults_for(self.config.sensor, truth.scenario_time_s, truth.progress_m)
         kinds = {fault.kind for fault in faults}
         self.active_faults = tuple(sorted(kinds, key=lambda kind: kind.value))
         if FaultKind.SILENCE in kinds:

@@ -4,11 +4,11 @@ Pure and seeded: every model draws from the ``numpy.random.Generator`` it is han
 clock and does no I/O, so a seed and a truth sequence fix every output. Each model's
 ``measure(truth, t_ns, t_s)`` takes one true state sample, its time ``t_ns`` (shared-time
 nanoseconds; only differences are used) and ``t_s``, seconds since the scenario started, at
-which the fault schedule is evaluated. It returns the bus message, or None when the sensor is
-silent. Models draw the same random numbers whatever the faults, so a fault never shifts the
-noise that follows it.
+which (with the sample's course progress) the fault schedule is evaluated. It returns the bus
+message, or None when the sensor is silent. Models draw the same random numbers whatever the
+faults, so a fault never shifts the noise that follows it.
 
-Faults (``modules.sim.world.SensorFault``), looked up with ``World.faults_for(name, t_s)``:
+Faults (``modules.sim.world.SensorFault``), looked up with ``World.faults_for(name, t_s, progress_m)``:
 
 - SILENCE and OUTAGE: no output. For the GPS an outage is no fix at all rather than a fix
   marked INVALID, so no consumer can mistake a stand-in for a position; a filter detects it
@@ -71,6 +71,9 @@ class TruthState(Protocol):
     @property
     def scenario_time_s(self) -> float: ...
 
+    @property
+    def progress_m(self) -> float: ...
+
 
 class GaussMarkov:
     """First-order Gauss-Markov process per axis (dx/dt = -x/tau + w), stationary std ``sigma``.
@@ -104,10 +107,10 @@ class FaultEffect(NamedTuple):
     jumps: tuple[SensorFault, ...]
 
 
-def fault_effect(schedule: World, sensor: str, t_s: float) -> FaultEffect:
-    """Combine the faults of ``sensor`` active at ``t_s``: silence wins over stuck, noise
-    factors multiply, jumps add."""
-    active = schedule.faults_for(sensor, t_s)
+def fault_effect(schedule: World, sensor: str, t_s: float, progress_m: float) -> FaultEffect:
+    """Combine the faults of ``sensor`` active at ``t_s`` and ``progress_m``: silence wins over
+    stuck, noise factors multiply, jumps add."""
+    active = schedule.faults_for(sensor, t_s, progress_m)
     kinds = {fault.kind for fault in active}
     return FaultEffect(
         silent=bool(kinds & {FaultKind.SILENCE, FaultKind.OUTAGE}),
@@ -126,8 +129,8 @@ class _Sensor(Generic[M]):
         self._last: M | None = None
         self._prev_t_ns: int | None = None
 
-    def _effect(self, t_s: float) -> FaultEffect:
-        return fault_effect(self._schedule, self.name, t_s)
+    def _effect(self, truth: TruthState, t_s: float) -> FaultEffect:
+        return fault_effect(self._schedule, self.name, t_s, truth.progress_m)
 
     def _elapsed_s(self, t_ns: int) -> float | None:
         """Seconds since the previous call (None on the first), remembering ``t_ns``."""
@@ -222,7 +225,7 @@ class ImuModel(_Sensor[ImuSample]):
             assert self._prev_speed_mps is not None
             long_accel = (truth.speed_mps - self._prev_speed_mps) / dt_s
         self._prev_speed_mps = truth.speed_mps
-        effect = self._effect(t_s)
+        effect = self._effect(truth, t_s)
         noise = self._rng.standard_normal(6) * effect.noise_scale
         accel = (
             np.array([long_accel, truth.speed_mps * truth.yaw_rate_radps, self.params.gravity_mps2])
@@ -283,7 +286,7 @@ class GpsModel(_Sensor[GpsFix]):
         dt_s = self._elapsed_s(t_ns)
         if dt_s is not None:
             self._wander.step(dt_s)
-        effect = self._effect(t_s)
+        effect = self._effect(truth, t_s)
         error = self._wander.value * self._wander_std_m
         error = error + self._rng.standard_normal(3) * self._noise_m * effect.noise_scale
         east, north, up = np.array([truth.east_m, truth.north_m, 0.0]) + error + self._jump_offset(effect)
@@ -329,7 +332,7 @@ class SpeedometerModel(_Sensor[WheelSpeed]):
             # Trapezoid: exact for the piecewise-linear speed a stepped simulator produces.
             self.odometer_m += self._scale * 0.5 * (self._prev_speed_mps + truth.speed_mps) * dt_s
         self._prev_speed_mps = truth.speed_mps
-        effect = self._effect(t_s)
+        effect = self._effect(truth, t_s)
         noise = float(self._rng.standard_normal()) * self.params.noise_std_mps * effect.noise_scale
         return self._emit(effect, WheelSpeed(self._scale * truth.speed_mps + noise, self.odometer_m))
 
@@ -366,7 +369,7 @@ class MagnetometerModel(_Sensor[MagHeading]):
     def measure(self, truth: TruthState, t_ns: int, t_s: float) -> MagHeading | None:
         """One heading at ``t_ns``; ``t_s`` (scenario seconds) selects the active faults."""
         self._elapsed_s(t_ns)  # no dynamics here; called to hold it to increasing times like the others
-        effect = self._effect(t_s)
+        effect = self._effect(truth, t_s)
         noise = float(self._rng.standard_normal()) * self._noise_rad * effect.noise_scale
         heading = wrap_angle(math.pi / 2 - truth.yaw_rad + self._bias_rad + noise)
         return self._emit(effect, MagHeading(self.index, heading, self._noise_rad))

@@ -60,6 +60,7 @@ class Truth(NamedTuple):
     speed_mps: float
     yaw_rate_radps: float
     scenario_time_s: float
+    progress_m: float = 0.0  # replays schedule their faults by time only
 
 
 class Event(NamedTuple):

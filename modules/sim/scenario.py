@@ -5,7 +5,7 @@
     [[obstacle]]          hand-placed obstacles, by arc length and offset or by east/north
     [random_obstacles]    seeded random obstacles inside the corridor
     [[hazard]]            ditches, berms and drop-offs for the vertical lidars
-    [[fault]]             the sensor fault schedule (seconds after the start)
+    [[fault]]             the sensor fault schedule (seconds after the start, metres along the course)
     [gps_jumps]           occasional seeded GPS jumps, added to the fault schedule
 
 Placement by ``at_m`` (arc length along the course centreline) and ``offset_m`` (left of it,
@@ -119,7 +119,7 @@ def load_scenario(path: str | Path = DEFAULT_SCENARIO) -> Scenario:
         hazards=tuple(_hazard(reader, route, t, f"hazard[{i}]") for i, t in enumerate(reader.array(doc, "hazard"))),
         lane_borders=_road(reader, route, reader.table(doc, "road")),
         faults=(
-            *(_fault(reader, t, f"fault[{i}]") for i, t in enumerate(reader.array(doc, "fault"))),
+            *(_fault(reader, route, t, f"fault[{i}]") for i, t in enumerate(reader.array(doc, "fault"))),
             *_gps_jumps(reader, reader.table(doc, "gps_jumps"), seed),
         ),
     )
@@ -400,8 +400,11 @@ def _road(reader: _Reader, route: CoursePath, table: dict[str, Any]) -> tuple[La
     return tuple(lines)
 
 
-def _fault(reader: _Reader, table: dict[str, Any], where: str) -> SensorFault:
-    reader.keys(table, where, {"sensors", "kind", "start_s", "end_s", "magnitude"})
+def _fault(reader: _Reader, route: CoursePath, table: dict[str, Any], where: str) -> SensorFault:
+    """A fault active from ``start_s`` (required) to ``end_s`` seconds, and, optionally, only
+    while the vehicle's course progress is in ``from_m``..``to_m`` (e.g. ``start_s = 0`` and
+    ``from_m`` at 60 % of the course: silent from there on, however long the start took)."""
+    reader.keys(table, where, {"sensors", "kind", "start_s", "end_s", "magnitude", "from_m", "to_m"})
     sensors = table.get("sensors")
     if not isinstance(sensors, list) or not sensors or not all(isinstance(s, str) for s in sensors):
         raise reader.fail(f"{where}.sensors", "expected a non-empty list of sensor names")
@@ -409,12 +412,15 @@ def _fault(reader: _Reader, table: dict[str, Any], where: str) -> SensorFault:
     if unknown:
         raise reader.fail(f"{where}.sensors", f"unknown sensor(s) {unknown}; known: {sorted(SENSOR_NAMES)}")
     start = reader.number(table, where, "start_s", low=0.0)
+    from_m = reader.number(table, where, "from_m", default=0.0, low=0.0, high=route.length_m)
     return SensorFault(
         sensors=tuple(sensors),
         kind=reader.choice(table, where, "kind", FaultKind),
         start_s=start,
         end_s=reader.number(table, where, "end_s", default=FOREVER_S, low=start),
         magnitude=reader.number(table, where, "magnitude", default=1.0),
+        from_m=from_m,
+        to_m=reader.number(table, where, "to_m", low=from_m) if "to_m" in table else math.inf,
     )
 
 

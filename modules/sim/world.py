@@ -90,16 +90,21 @@ class FaultKind(enum.Enum):
 @dataclass(frozen=True)
 class SensorFault:
     """A fault of ``sensors`` (names such as "gps", "lidar_h_left", or "lidars" for all four)
-    active from ``start_s`` to ``end_s`` seconds after the scenario starts."""
+    active from ``start_s`` to ``end_s`` seconds after the scenario starts, while the vehicle's
+    course progress is between ``from_m`` and ``to_m``. The progress window places a fault on
+    the course (RASCAL's lidars fell silent part-way along it) however long the stack took to
+    start; both windows are judged on the truth sample, so every sensor process agrees."""
 
     sensors: tuple[str, ...]
     kind: FaultKind
     start_s: float
     end_s: float
     magnitude: float = 1.0
+    from_m: float = 0.0
+    to_m: float = math.inf
 
-    def active(self, t_s: float) -> bool:
-        return self.start_s <= t_s < self.end_s
+    def active(self, t_s: float, progress_m: float) -> bool:
+        return self.start_s <= t_s < self.end_s and self.from_m <= progress_m < self.to_m
 
 
 @dataclass(frozen=True)
@@ -109,7 +114,8 @@ class World:
     lane_borders: tuple[LaneBorderLine, ...] = ()
     faults: tuple[SensorFault, ...] = field(default_factory=tuple)
 
-    def faults_for(self, sensor: str, t_s: float) -> list[SensorFault]:
-        """Faults of ``sensor`` active at ``t_s`` (``lidars`` names all four lidars)."""
+    def faults_for(self, sensor: str, t_s: float, progress_m: float) -> list[SensorFault]:
+        """Faults of ``sensor`` active at scenario time ``t_s`` and course progress
+        ``progress_m`` (``lidars`` names all four lidars)."""
         aliases = {sensor, "lidars"} if sensor.startswith("lidar") else {sensor}
-        return [f for f in self.faults if f.active(t_s) and aliases.intersection(f.sensors)]
+        return [f for f in self.faults if f.active(t_s, progress_m) and aliases.intersection(f.sensors)]

@@ -85,7 +85,7 @@ class StereoCamera(Module):
             return
         self.last_truth_ns = t_meas_ns
         assert self.world is not None and self.writer is not None
-        faults = self.world.faults_for(FAULT_SENSOR, truth.scenario_time_s)
+        faults = self.world.faults_for(FAULT_SENSOR, truth.scenario_time_s, truth.progress_m)
         kinds = {fault.kind for fault in faults}
         self.fault = ",".join(sorted(kind.value for kind in kinds))
         if FaultKind.SILENCE in kinds:

@@ -102,7 +102,19 @@ def test_invalid_toml_is_refused(tmp_path: Path) -> None:
 def test_fault_schedule_is_loaded_with_times(tmp_path: Path) -> None:
     path = write(tmp_path, "[[fault]]\nsensors = ['lidars']\nkind = 'silence'\nstart_s = 60.0\n")
     [fault] = load_scenario(path).world.faults
-    assert fault.kind is FaultKind.SILENCE and not fault.active(59.9) and fault.active(60.0) and fault.active(1e6)
+    assert fault.kind is FaultKind.SILENCE and not fault.active(59.9, 0.0) and fault.active(60.0, 0.0)
+    assert fault.active(1e6, 1e6)
+
+
+def test_a_fault_can_be_placed_on_the_course_by_progress(tmp_path: Path) -> None:
+    path = write(tmp_path, "[[fault]]\nsensors = ['gps']\nkind = 'outage'\nstart_s = 0.0\nfrom_m = 40.0\nto_m = 80.0\n")
+    [fault] = load_scenario(path).world.faults
+    assert not fault.active(100.0, 39.9) and fault.active(100.0, 40.0) and not fault.active(100.0, 80.0)
+    assert load_scenario(path).world.faults_for("gps", 5.0, 50.0) == [fault]
+    for bad, message in (("from_m = -1.0", "from_m"), ("from_m = 40.0\nto_m = 30.0", "to_m")):
+        write(tmp_path, f"[[fault]]\nsensors = ['gps']\nkind = 'outage'\nstart_s = 0.0\n{bad}\n")
+        with pytest.raises(ScenarioError, match=message):
+            load_scenario(path)
 
 
 def test_gps_jumps_are_seeded_faults_at_the_configured_rate(tmp_path: Path) -> None:
