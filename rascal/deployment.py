@@ -11,7 +11,7 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     origin = ""                               # "lat,lon[,alt]"; empty: the course's first waypoint
 
     [hosts.brainbox]                          # optional; without hosts every module is local
-    address = "10.0.0.2"                      # informational (systemd units, docs)
+    address = "10.0.0.2"                      # this host's LAN address: its iface= on an off-host bus
 
     [modules.lidar_h_left]                    # one table per process; the key is its label
     module = "lidar"                          # package under modules/ (default: the label)
@@ -40,6 +40,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import parse_qsl, urlencode, urlsplit
 
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
 from rascal.config import ConfigError, build_config
@@ -49,6 +50,9 @@ DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[1] / "deploy" / "localhost
 SHARED_SETTINGS = ("scenario", "course", "origin")
 LOCALHOST = "localhost"
 FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
+# Each host's own processes (supervisor, recorder) get source ids offset by this per host, in
+# declaration order: two senders sharing a source id would break each other's replay windows.
+HOST_SOURCE_ID_STRIDE = 100
 
 
 class DeploymentError(ValueError):
@@ -99,6 +103,21 @@ class Deployment:
         if host not in self.hosts:
             raise DeploymentError(f"{self.path}: no host {host!r}; hosts: {sorted(self.hosts)}")
         return tuple(spec for spec in self.modules if spec.host == host)
+
+    def bus_on(self, host: str) -> str:
+        """The bus URL for ``host``'s processes: a bus that leaves the host (udpm, ttl > 0) goes
+        out through that host's own address, so one file serves every host."""
+        address = self.hosts.get(host, "")
+        parts = urlsplit(self.bus)
+        query = dict(parse_qsl(parts.query, keep_blank_values=True))
+        if parts.scheme != "udpm" or not address or query.get("ttl", "0") in ("", "0"):
+            return self.bus
+        query["iface"] = address
+        return parts._replace(query=urlencode(query, safe=",")).geturl()
+
+    def host_source_id(self, host: str, base: int) -> int:
+        """``base`` (the supervisor's or recorder's id) made unique to ``host``."""
+        return base + HOST_SOURCE_ID_STRIDE * list(self.hosts).index(host)
 
     def spec(self, label: str) -> ModuleSpec:
         for spec in self.modules:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -102,3 +103,22 @@ def test_the_three_host_vehicle_deployment_splits_the_stack() -> None:
     assert {"control", "sim"} <= by_host["drive"]
     assert sum(len(labels) for labels in by_host.values()) == len(deployment.modules)
     assert "iface=" in deployment.bus
+
+
+def test_each_host_leaves_through_its_own_address_with_its_own_source_ids() -> None:
+    deployment = load_deployment(DEFAULT_DEPLOYMENT.parent / "vehicle-3hosts.toml")
+    buses = {host: deployment.bus_on(host) for host in deployment.hosts}
+    assert buses["brainbox"] == "udpm://239.255.76.67:7667?ttl=1&iface=10.0.0.2"
+    assert buses["drive"].endswith("iface=10.0.0.3")
+    ids = {deployment.host_source_id(host, 9) for host in deployment.hosts}
+    assert len(ids) == 3 and not ids & {spec.source_id for spec in deployment.modules}
+
+
+def test_a_bus_that_stays_on_the_host_is_left_alone(tmp_path: Path) -> None:
+    deployment = load_deployment(write(tmp_path, GOOD))  # ttl=0; front has an address, back none
+    assert deployment.bus_on("front") == deployment.bus_on("back") == "udpm://239.255.1.2:7700?ttl=0"
+    offsite = dataclasses.replace(
+        deployment, bus="udpm://239.255.1.2:7700?ttl=2&iface=10.0.0.9&peers=10.0.0.7,10.0.0.8"
+    )
+    assert offsite.bus_on("front") == "udpm://239.255.1.2:7700?ttl=2&iface=10.0.0.1&peers=10.0.0.7,10.0.0.8"
+    assert offsite.bus_on("back") == offsite.bus  # no address: the file's iface stands
