@@ -42,6 +42,7 @@ from rascal.deployment import (
 )
 from rascal.module import Runtime
 from rascal.supervisor import SUPERVISOR_SOURCE_ID, Supervisor, module_state
+from rascal.view.module import viewer_spec
 
 VIEW_PERIOD_S = 0.5
 FINISH_DISTANCE_M = 3.0  # this close to the end of the course, and stopped, is finished
@@ -62,6 +63,7 @@ class RunSupervisor(Supervisor):
         run_dir: Path,
         duration_s: float | None,
         console: Console,
+        view_port: int | None = None,
     ) -> None:
         recorder = ModuleSpec(
             label="recorder",
@@ -75,7 +77,8 @@ class RunSupervisor(Supervisor):
             },
             entry="rascal.recording",
         )
-        super().__init__(runtime, deployment, host, run_dir, extra=(recorder,))
+        viewer = () if view_port is None else (viewer_spec(deployment, host, view_port),)
+        super().__init__(runtime, deployment, host, run_dir, extra=(recorder, *viewer))
         self.run_dir = run_dir
         self.duration_s = duration_s
         self.console = console
@@ -204,6 +207,7 @@ def run(
     runs_dir: Path = Path("runs"),
     duration_s: float | None = None,
     console: Console | None = None,
+    view_port: int | None = None,
 ) -> tuple[int, Path]:
     """Run this host's modules until the course is done, ``duration_s`` or a signal."""
     if console is None:
@@ -215,7 +219,9 @@ def run(
     clock = SharedClock()
     bus = Bus.open(deployment.bus, source_id=SUPERVISOR_SOURCE_ID, clock=clock, keyring=keyring)
     runtime = Runtime(bus, clock)
-    supervisor = RunSupervisor(runtime, deployment, host, run_dir, duration_s, console)
+    supervisor = RunSupervisor(runtime, deployment, host, run_dir, duration_s, console, view_port)
+    if view_port is not None:
+        console.print(f"live view: http://127.0.0.1:{view_port}/")
     runtime.run(supervisor)
     console.print(f"run {'finished the course' if supervisor.finished else 'ended'}; logs and summary in {run_dir}/")
     return 0, run_dir
@@ -227,6 +233,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--host", help="which host's modules to run (default: the only host, or localhost)")
     parser.add_argument("--duration", type=float, help="end after this many seconds")
     parser.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run directories go")
+    parser.add_argument("--view", action="store_true", help="serve the live view (rascal view) alongside the drive")
+    parser.add_argument("--view-port", type=int, default=8090, help="HTTP port of the live view")
     args = parser.parse_args(argv)
     try:
         deployment = load_deployment(args.deployment)
@@ -236,5 +244,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         parser.error("--duration must be a positive number of seconds")
-    status, _ = run(deployment, host, args.runs_dir, args.duration)
+    status, _ = run(deployment, host, args.runs_dir, args.duration, view_port=args.view_port if args.view else None)
     return status

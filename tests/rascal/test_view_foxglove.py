@@ -1,0 +1,102 @@
+"""rascal view --foxglove: a client speaking Foxglove's WebSocket protocol connects to the viewer
+process, sees the five channels advertised with their Foxglove schemas, subscribes, and receives
+each (the map's cells inside the Grid). And the recordings' JSON channels are in Foxglove's terms."""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+import zlib
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from brain.course_config import DEFAULT_COURSE
+from protocol import channels
+from protocol.auth import load_keyring
+from rascal.bus import Bus
+from rascal.clock import WallClock
+from rascal.record_schema import JSON_ENCODING, JSON_SCHEMA_ENCODING
+from tests.rascal.test_view import free_port, publish_drive, recording, snapshot, start, stop, vehicle
+
+websocket = pytest.importorskip("websocket", reason="websocket-client (a dev dependency) is not installed")
+pytest.importorskip("foxglove", reason="foxglove-sdk (the optional 'foxglove' extra) is not installed")
+
+from rascal.view.foxglove_bridge import TOPICS  # noqa: E402  (needs foxglove-sdk)
+
+MESSAGE_DATA_OPCODE = 1
+
+
+def test_a_foxglove_client_receives_map_scene_path_and_vehicle(bus_url: str, key_file: Path, tmp_path: Path) -> None:
+    port, fox_port = free_port(), free_port()
+    log = tmp_path / "viewer.log"
+    command = ["-m", "rascal.cli", "view", "--port", str(port), "--foxglove", "--foxglove-port", str(fox_port)]
+    child = start([*command, "--course", str(DEFAULT_COURSE)], log)
+    bus = Bus.open(bus_url, source_id=78, clock=WallClock(), keyring=load_keyring(key_file))
+    client = None
+    try:
+        deadline = time.monotonic() + 60
+        while client is None:
+            assert child.poll() is None and time.monotonic() < deadline, log.read_text()
+            try:
+                client = websocket.create_connection(
+                    f"ws://127.0.0.1:{fox_port}", subprotocols=["foxglove.sdk.v1"], timeout=5, suppress_origin=True
+                )
+            except OSError:
+                time.sleep(0.3)
+        advertised: dict[int, dict[str, str]] = {}
+        while len(advertised) < len(TOPICS):
+            message = json.loads(client.recv())
+            if message["op"] == "advertise":
+                advertised.update({channel["id"]: channel for channel in message["channels"]})
+        assert {c["topic"]: c["schemaName"] for c in advertised.values()} == TOPICS
+        assert {c["encoding"] for c in advertised.values()} == {"protobuf"}
+        topic_of = dict(enumerate((c["topic"] for c in advertised.values()), start=1))
+        subscriptions = [{"id": i, "channelId": cid} for i, cid in enumerate(advertised, start=1)]
+        client.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+        received: dict[str, bytes] = {}
+        client.settimeout(0.05)
+        deadline = time.monotonic() + 30
+        while set(received) != set(TOPICS) and time.monotonic() < deadline:
+            bus.publish(channels.MAP_SNAPSHOT, snapshot())  # every frame: one lands after the subscription
+            publish_drive(bus, 3, 0.02)
+            try:
+                frame = client.recv()
+            except websocket.WebSocketTimeoutException:
+                continue
+            if isinstance(frame, bytes) and frame[0] == MESSAGE_DATA_OPCODE:
+                (subscription,) = struct.unpack_from("<I", frame, 1)
+                received[topic_of[subscription]] = frame[13:]  # opcode, subscription id, log time
+        assert set(received) == set(TOPICS), (sorted(received), log.read_text()[-2000:])
+        assert zlib.decompress(snapshot().cells) in received["/rascal/map"]  # the cells, as Grid data
+        assert b"vehicle" in received["/tf"] and b"lidar_h_left" in received["/rascal/obstacles"]
+    finally:
+        if client is not None:
+            client.close()
+        bus.close()
+        stop(child)
+    assert child.returncode == 0, log.read_text()
+
+
+def test_recorded_json_channels_are_what_foxglove_opens(tmp_path: Path, key_file: Path) -> None:
+    """Foxglove decodes a channel with message encoding ``json`` by the ``jsonschema`` schema
+    registered with it; both must be set on every non-raw channel, and the schema must be a JSON
+    object schema naming the message type."""
+    messages = [(channels.VEHICLE_STATE, vehicle(1.0, 2.0, 0.5)), (channels.MAP_SNAPSHOT, snapshot())]
+    path = recording(tmp_path / "run.mcap", key_file, messages, {})
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None
+        json_channels = [c for c in summary.channels.values() if c.topic.endswith(".json")]
+        assert {c.topic for c in json_channels} == {"VEHICLE_STATE.json", "MAP_SNAPSHOT.json"}
+        for channel in json_channels:
+            schema = summary.schemas[channel.schema_id]
+            assert channel.message_encoding == JSON_ENCODING == "json"
+            assert schema.encoding == JSON_SCHEMA_ENCODING == "jsonschema"
+            document = json.loads(schema.data)
+            assert document["type"] == "object" and schema.name.endswith(document["title"])
+        for _schema, channel, message in reader.iter_messages(topics=["VEHICLE_STATE.json"]):
+            assert json.loads(message.data)["yaw_rad"] == 0.5 and channel.topic == "VEHICLE_STATE.json"
