@@ -18,6 +18,7 @@ DELEGATED_TOOLS: dict[tuple[str, ...], tuple[str, str]] = {
     ("run",): ("rascal.run", "run a deployment's modules here, supervised, until the course is done"),
     ("ins", "accuracy"): ("modules.nav_sensors.accuracy", "replay a scenario through the navigation filters"),
     ("esvs", "eval"): ("modules.esvs.evaluate", "stereo accuracy on a pair with ground truth"),
+    ("spoof",): ("rascal.spoof", "hostile datagrams for fault testing (bounded, loopback only)"),
     ("view",): ("rascal.view.cli", "a live bird's-eye view of the bus (or a recording) in the browser"),
 }
 
