@@ -65,7 +65,10 @@ class Referee:
     def on_truth(self, truth: SimTruth) -> None:
         self.samples += 1
         self.last = truth
-        if self.finish_time_s is None and self.route.length_m - truth.progress_m < FINISH_DISTANCE_M:
+        # The simulator's progress is the nearest route point's: up to half a spacing short of
+        # where the vehicle stopped, which rascal run (on the continuous station) does not lose.
+        to_go_m = self.route.length_m - truth.progress_m - 0.5 * self.route.spacing_m
+        if self.finish_time_s is None and to_go_m < FINISH_DISTANCE_M:
             self.finish_time_s = truth.scenario_time_s
         if self.finish_time_s is not None:
             return  # after the finish only the totals matter
