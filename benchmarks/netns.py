@@ -1,22 +1,30 @@
-"""A throwaway network namespace with only loopback, for benchmarks that must not touch a NIC.
+"""Throwaway network namespaces: one with only loopback, or several hosts on a private bridge.
 
 LCM sends multicast along the default route; inside a fresh namespace the only interface is
 ``lo`` and multicast is routed to it, so every contender stays on this host by construction.
+Bridged hosts stand in for the vehicle's computers (tests/integration/test_three_hosts.py): each
+host namespace has one veth to a bridge in a fourth, "switch" namespace, so nothing is added to
+the root namespace and a host's link can be cut at the switch like a pulled cable.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import secrets
 import shutil
 import signal
 import subprocess
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 IP_TIMEOUT_S = 10.0
 RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
 TERM_GRACE_S = 5.0
+CLONE_NEWNET = 0x40000000
+HOST_LINK = "eth0"  # every host's one interface (names are per namespace)
 
 
 class NamespaceError(RuntimeError):
@@ -41,7 +49,68 @@ def loopback_namespace(name: str) -> Iterator[str]:
         _ip("netns", "exec", name, "ip", "route", "add", "224.0.0.0/4", "dev", "lo")
         yield name
     finally:
-        subprocess.run(["ip", "netns", "delete", name], capture_output=True, timeout=IP_TIMEOUT_S, check=False)
+        _delete_namespace(name)
+
+
+@dataclass(frozen=True)
+class BridgedHosts:
+    """Hosts (name -> namespace, address) on one bridge in the ``switch`` namespace."""
+
+    switch: str
+    namespaces: dict[str, str]
+    addresses: dict[str, str]
+
+    def command(self, host: str, argv: Sequence[str]) -> list[str]:
+        """``argv`` run inside ``host``'s namespace (``ip netns exec`` execs it: same pid)."""
+        return ["ip", "netns", "exec", self.namespaces[host], *argv]
+
+    def cut(self, host: str) -> None:
+        """Unplug ``host`` at the switch: its port goes down, its own interface loses carrier."""
+        _ip("-n", self.switch, "link", "set", _port(host), "down")
+
+    def reconnect(self, host: str) -> None:
+        _ip("-n", self.switch, "link", "set", _port(host), "up")
+
+    @contextmanager
+    def entered(self, host: str) -> Iterator[None]:
+        """This thread in ``host``'s network namespace: sockets made meanwhile stay there."""
+        with open("/proc/thread-self/ns/net", "rb") as home, open(f"/run/netns/{self.namespaces[host]}", "rb") as ns:
+            _setns(ns.fileno())
+            try:
+                yield
+            finally:
+                _setns(home.fileno())
+
+
+@contextmanager
+def bridged_hosts(names: Sequence[str], subnet: str = "10.77.0") -> Iterator[BridgedHosts]:
+    """Namespaces for ``names`` at ``subnet``.1, .2, ... /24 on one bridge; all deleted on exit.
+
+    Namespace names carry a random suffix, so concurrent runs never share one.
+    """
+    if not 0 < len(names) < 250:
+        raise ValueError(f"1..249 hosts, not {len(names)}")
+    tag = secrets.token_hex(3)
+    switch = f"rascal-{tag}-switch"
+    hosts = BridgedHosts(
+        switch,
+        {name: f"rascal-{tag}-{name}" for name in names},
+        {name: f"{subnet}.{i + 1}" for i, name in enumerate(names)},
+    )
+    with ExitStack() as cleanup:
+        for namespace in (switch, *hosts.namespaces.values()):
+            _ip("netns", "add", namespace)
+            cleanup.callback(_delete_namespace, namespace)
+        _ip("-n", switch, "link", "add", "br0", "type", "bridge", "mcast_snooping", "0")
+        _ip("-n", switch, "link", "set", "br0", "up")
+        for name, namespace in hosts.namespaces.items():
+            port = _port(name)
+            _ip("-n", switch, "link", "add", port, "type", "veth", "peer", "name", HOST_LINK, "netns", namespace)
+            _ip("-n", switch, "link", "set", port, "master", "br0", "up")
+            _ip("-n", namespace, "addr", "add", f"{hosts.addresses[name]}/24", "dev", HOST_LINK)
+            _ip("-n", namespace, "link", "set", HOST_LINK, "up")
+            _ip("-n", namespace, "link", "set", "lo", "up")
+        yield hosts
 
 
 def run_in_namespace(name: str, argv: Sequence[str], timeout_s: float, cwd: Path) -> int:
@@ -67,6 +136,21 @@ def raise_rmem_max(value: int) -> str:
     except OSError as exc:
         return f"net.core.rmem_max stays {before} (raising it to {value} refused: {exc.strerror})"
     return f"net.core.rmem_max raised {before} -> {value}"
+
+
+def _port(host: str) -> str:
+    return f"p-{host}"[:15]  # the switch's end of host's link (IFNAMSIZ)
+
+
+def _delete_namespace(name: str) -> None:
+    subprocess.run(["ip", "netns", "delete", name], capture_output=True, timeout=IP_TIMEOUT_S, check=False)
+
+
+def _setns(fd: int) -> None:
+    # os.setns arrives in Python 3.12; until then libc's.
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.setns(fd, CLONE_NEWNET) != 0:
+        raise NamespaceError(f"setns failed: {os.strerror(ctypes.get_errno())}")
 
 
 def _ip(*args: str) -> None:

@@ -69,7 +69,7 @@ class RunSupervisor(Supervisor):
             label="recorder",
             module="recorder",
             host=host,
-            source_id=RECORDER_SOURCE_ID,
+            source_id=deployment.host_source_id(host, RECORDER_SOURCE_ID),
             heartbeat_timeout_s=5.0,
             settings={
                 "out": str((run_dir / "run.mcap").resolve()),
@@ -217,7 +217,8 @@ def run(
     run_dir.mkdir(parents=True, exist_ok=True)
     keyring = load_keyring(deployment.key_file) if deployment.key_file else default_keyring()
     clock = SharedClock()
-    bus = Bus.open(deployment.bus, source_id=SUPERVISOR_SOURCE_ID, clock=clock, keyring=keyring)
+    source_id = deployment.host_source_id(host, SUPERVISOR_SOURCE_ID)
+    bus = Bus.open(deployment.bus_on(host), source_id=source_id, clock=clock, keyring=keyring)
     runtime = Runtime(bus, clock)
     supervisor = RunSupervisor(runtime, deployment, host, run_dir, duration_s, console, view_port)
     if view_port is not None:

@@ -1,0 +1,230 @@
+"""The stack split over three hosts, as on the vehicle: three network namespaces on one bridge,
+each running `rascal run DEPLOY --host NAME` for its part of deploy/vehicle-3hosts.toml (sensors
++ ESVS; brain + INS + time master; control + simulator + referee) over multicast between them.
+
+First the split stack drives a short course to its end; every host sees the finish. Then it
+starts again, and mid-drive the brain host is unplugged at the switch: control, on the drive
+host, loses navigation and path at once and must brake the vehicle to a stop by itself, seen on
+the drive host's own bus. No supervisor may restart anything over a link it cannot see across.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import pytest
+
+from benchmarks.netns import BridgedHosts, bridged_hosts, unavailable_reason
+from protocol import channels
+from protocol.codec import Envelope
+from protocol.messages import ActuatorCommand, SimTruth
+from rascal.deployment import DEFAULT_DEPLOYMENT
+from tests.conftest import ROOT
+from tests.integration.listener import Listener
+from tests.integration.test_closed_loop import RDDF, SCENARIO
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(unavailable_reason() is not None, reason=f"network namespaces: {unavailable_reason()}"),
+]
+
+VEHICLE = DEFAULT_DEPLOYMENT.parent / "vehicle-3hosts.toml"
+HOSTS = ("sensors", "brainbox", "drive")
+CUT_HOST = "brainbox"
+CUT_AT_M = 60.0
+CUT_MIN_SPEED_MPS = 4.0
+PATH_MAX_AGE_S = 0.5  # control's default; VEHICLE_STATE's (0.2 s) goes stale first
+STOPPED_MPS = 0.1
+DRIVE_TIMEOUT_S = 200.0  # the whole short course, start-up included, on a loaded 2-core machine
+
+
+@pytest.fixture
+def network() -> Iterator[BridgedHosts]:
+    with bridged_hosts(HOSTS) as hosts:
+        yield hosts
+
+
+def toml_value(value: Any) -> str:
+    """The few TOML value shapes a deployment uses (JSON strings are TOML basic strings)."""
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{key} = {toml_value(item)}" for key, item in value.items()) + " }"
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(item) for item in value) + "]"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return json.dumps(value) if isinstance(value, str) else repr(value)
+
+
+def write_deployment(tmp_path: Path, network: BridgedHosts, bus_url: str, key_file: Path) -> Path:
+    """deploy/vehicle-3hosts.toml's modules and hosts, on this network, this bus, a short course."""
+    vehicle = tomllib.loads(VEHICLE.read_text())
+    assert set(vehicle["hosts"]) == set(HOSTS)
+    (tmp_path / "course.rddf").write_text(RDDF)
+    (tmp_path / "scenario.toml").write_text(SCENARIO)
+    private = urlsplit(bus_url)  # the fixture's random group and port; ttl=1 to leave each host
+    bus = f"udpm://{private.hostname}:{private.port}?ttl=1&iface={network.addresses[HOSTS[0]]}"
+    lines = [
+        "[deployment]",
+        'name = "three-hosts"',
+        f'bus = "{bus}"',
+        f'key_file = "{key_file}"',
+        'scenario = "scenario.toml"',
+        'course = "course.rddf"',
+    ]
+    for host in HOSTS:
+        lines += [f"[hosts.{host}]", f'address = "{network.addresses[host]}"']
+    ring = f"rascal-{network.switch}"  # the frame ring the camera and ESVS share on the sensors host
+    for label, table in vehicle["modules"].items():
+        if label in ("stereo_camera", "esvs"):
+            table = {**table, "set": {**table.get("set", {}), "ring_name": ring}}
+        lines.append(f"[modules.{label}]")
+        lines += [f"{key} = {toml_value(value)}" for key, value in table.items()]
+    deploy = tmp_path / "deploy.toml"
+    deploy.write_text("\n".join(lines) + "\n")
+    return deploy
+
+
+class Stack:
+    """One `rascal run --host NAME` per host, each in its namespace with its own runs directory."""
+
+    def __init__(self, network: BridgedHosts, deploy: Path, out: Path, duration_s: float) -> None:
+        self.out = out
+        self.runs: dict[str, subprocess.Popen[bytes]] = {}
+        for host in HOSTS:
+            (out / host).mkdir(parents=True)
+            argv = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--host", host]
+            argv += ["--duration", str(duration_s), "--runs-dir", str(out / host)]
+            with (out / f"{host}.log").open("wb") as log:
+                self.runs[host] = subprocess.Popen(
+                    network.command(host, argv), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT
+                )
+
+    def logs(self) -> str:
+        """Each host's rascal run output, and the end of every module log that has a traceback."""
+        parts = [f"--- {host}\n{(self.out / f'{host}.log').read_text()[-2000:]}" for host in HOSTS]
+        for log in sorted(self.out.glob("*/*/*.log")):
+            text = log.read_text(errors="replace")
+            if "Traceback" in text:
+                parts.append(f"--- {log.relative_to(self.out)}\n{text[-1500:]}")
+        return "\n".join(parts)
+
+    def wait(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for host, run in self.runs.items():
+            try:
+                run.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pytest.fail(f"rascal run on {host} still running after {timeout_s:.0f} s\n{self.logs()}")
+            assert run.returncode == 0, f"rascal run on {host} exited with {run.returncode}\n{self.logs()}"
+
+    def interrupt(self) -> None:
+        """Ctrl-C on every host: each pauses the vehicle and stops its modules in order."""
+        for run in self.runs.values():
+            if run.poll() is None:
+                run.send_signal(signal.SIGINT)
+
+    def kill(self) -> None:
+        for run in self.runs.values():
+            if run.poll() is None:
+                run.kill()
+                run.wait()
+
+    def summary(self, host: str) -> dict[str, Any]:
+        (run_dir,) = (self.out / host).iterdir()
+        return json.loads((run_dir / "summary.json").read_text())
+
+    def restarts(self) -> dict[str, list[str]]:
+        """Every restart any supervisor made, by host/module, with its reasons."""
+        return {
+            f"{host}/{label}": module["restart_reasons"]
+            for host in HOSTS
+            for label, module in self.summary(host)["modules"].items()
+            if module["restarts"]
+        }
+
+
+def drive_host_listener(network: BridgedHosts, deploy: Path, key_file: Path) -> Listener:
+    """The test's ears on the drive host's side of the network."""
+    bus = tomllib.loads(deploy.read_text())["deployment"]["bus"]
+    bus = bus.replace(network.addresses[HOSTS[0]], network.addresses["drive"])
+    with network.entered("drive"):
+        return Listener(bus, key_file, source_id=915)
+
+
+def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_brain_host_drops_off(
+    network: BridgedHosts, bus_url: str, key_file: Path, tmp_path: Path
+) -> None:
+    deploy = write_deployment(tmp_path, network, bus_url, key_file)
+
+    # 1. The split stack completes the course; each host ends by itself at the finish.
+    stack = Stack(network, deploy, tmp_path / "course", DRIVE_TIMEOUT_S)
+    try:
+        stack.wait(DRIVE_TIMEOUT_S + 30.0)
+    finally:
+        stack.kill()
+    drive = stack.summary("drive")["drive"]
+    print("course:", json.dumps(drive))
+    assert all(stack.summary(host)["finished"] for host in HOSTS), stack.logs()
+    assert drive["finished"] and drive["collisions"] == 0 and drive["corridor_exits"] == 0
+    assert drive["cross_track_rms_m"] <= 0.3
+    assert stack.restarts() == {}
+
+    # 2. Again; mid-drive the brain host loses its link.
+    stack = Stack(network, deploy, tmp_path / "cut", DRIVE_TIMEOUT_S)
+    listener = drive_host_listener(network, deploy, key_file)
+    truth: list[tuple[float, SimTruth]] = []
+    commands: list[tuple[float, ActuatorCommand]] = []
+    with network.entered("drive"):
+        listener.subscribe(channels.SIM_TRUTH, lambda msg, _env: truth.append((time.monotonic(), msg)))
+
+        def on_command(command: ActuatorCommand, _env: Envelope) -> None:
+            commands.append((time.monotonic(), command))
+
+        listener.subscribe(channels.ACTUATOR_COMMAND, on_command)
+    try:
+        driving = listener.wait_until(
+            lambda: bool(truth) and truth[-1][1].progress_m >= CUT_AT_M and truth[-1][1].speed_mps >= CUT_MIN_SPEED_MPS,
+            DRIVE_TIMEOUT_S,
+        )
+        assert driving, f"never at {CUT_AT_M} m and {CUT_MIN_SPEED_MPS} m/s: {truth[-1:]}\n{stack.logs()}"
+        network.cut(CUT_HOST)
+        cut_at = time.monotonic()
+        speed_at_cut = truth[-1][1].speed_mps
+
+        def failsafe_brakes() -> list[tuple[float, ActuatorCommand]]:
+            return [(t, c) for t, c in commands if t > cut_at and c.brake >= 0.99 and "stale" in c.stop_reason]
+
+        def stopped() -> bool:
+            return bool(failsafe_brakes()) and truth[-1][0] > cut_at and truth[-1][1].speed_mps < STOPPED_MPS
+
+        assert listener.wait_until(stopped, 15.0), f"no fail-safe stop: {commands[-1:]} {truth[-1:]}"
+        braked_at, first = failsafe_brakes()[0]
+        stopped_at = next(t for t, s in truth if t > braked_at and s.speed_mps < STOPPED_MPS)
+        print(
+            f"{CUT_HOST} cut at {speed_at_cut:.1f} m/s: control braking after {(braked_at - cut_at) * 1000:.0f} ms "
+            f"({first.stop_reason}), stopped {stopped_at - cut_at:.1f} s after the cut"
+        )
+        assert braked_at - cut_at <= PATH_MAX_AGE_S + 0.15  # the longer stale timeout, one tick and slack
+        # Held on the brake while the inputs stay away (2 s more), and the vehicle stays put.
+        listener.wait_until(lambda: False, 2.0)
+        after = [c for t, c in commands if t > braked_at]
+        assert after and all(c.brake >= 0.99 and c.throttle == 0.0 for c in after), after[-3:]
+        assert max(s.speed_mps for t, s in truth if t > stopped_at) < STOPPED_MPS
+    finally:
+        listener.close()
+        stack.interrupt()
+    try:
+        stack.wait(30.0)
+    finally:
+        stack.kill()
+    assert stack.restarts() == {}, "a supervisor restarted a module over the cut link"
+    assert not stack.summary("drive")["finished"]
