@@ -174,7 +174,7 @@ def _duration(seconds: float) -> str:
     return f"{minutes} min {rest:04.1f} s" if minutes else f"{rest:.1f} s"
 
 
-class _Canvas:
+class Canvas:
     """An image with the course's metres mapped to pixels, north up, fitted inside a square."""
 
     def __init__(self, bounds_m: tuple[float, float, float, float], size_px: int) -> None:
@@ -203,20 +203,20 @@ class _Canvas:
 
 def render_course(course: Course, path: CoursePath, title: str, size_px: int = 1600) -> np.ndarray:
     """A BGR image of the corridor, the path coloured by desired speed, waypoints, legend and scale."""
-    canvas = _Canvas(course.corridor.bounds_m(), size_px)
+    canvas = Canvas(course.corridor.bounds_m(), size_px)
     vmax_mps = float(course.speed_limit_mps.max())
-    _draw_corridor(canvas, course)
+    draw_corridor(canvas, course)
     _draw_path(canvas, path, vmax_mps)
     _draw_waypoints(canvas, course)
-    _draw_start_finish(canvas, course)
+    draw_start_finish(canvas, course)
     _draw_header(canvas, course, path, title)
-    _draw_scale_bar(canvas)
-    _draw_speed_legend(canvas, vmax_mps)
-    _draw_north_arrow(canvas)
+    draw_scale_bar(canvas)
+    draw_speed_legend(canvas, vmax_mps)
+    draw_north_arrow(canvas)
     return canvas.image
 
 
-def _draw_corridor(canvas: _Canvas, course: Course) -> None:
+def draw_corridor(canvas: Canvas, course: Course) -> None:
     corridor = course.corridor
     mask = np.zeros(canvas.image.shape[:2], dtype=np.uint8)
     starts = canvas.pixels(corridor.start_m[:, 0], corridor.start_m[:, 1])
@@ -238,17 +238,17 @@ def _draw_corridor(canvas: _Canvas, course: Course) -> None:
     cv2.drawContours(canvas.image, contours, -1, CORRIDOR_EDGE, 1, cv2.LINE_AA)
 
 
-def _speed_colors(speed_mps: np.ndarray, vmax_mps: float) -> np.ndarray:
+def speed_colors(speed_mps: np.ndarray, vmax_mps: float) -> np.ndarray:
     """Turbo colours (BGR): dark blue at standstill, dark red at the course's highest limit."""
     levels = np.clip(np.round(speed_mps / vmax_mps * 255.0), 0, 255).astype(np.uint8)
     return cv2.applyColorMap(levels.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)
 
 
-def _draw_path(canvas: _Canvas, path: CoursePath, vmax_mps: float) -> None:
+def _draw_path(canvas: Canvas, path: CoursePath, vmax_mps: float) -> None:
     points = canvas.fixed(canvas.pixels(path.east_m, path.north_m))
     step_speed = 0.5 * (path.speed_mps[:-1] + path.speed_mps[1:])
     levels = np.round(np.clip(step_speed / vmax_mps, 0.0, 1.0) * 63).astype(int)
-    colors = _speed_colors(levels / 63.0 * vmax_mps, vmax_mps)
+    colors = speed_colors(levels / 63.0 * vmax_mps, vmax_mps)
     # One polyline per run of steps with the same colour level keeps the draw calls few.
     breaks = np.concatenate([[0], np.flatnonzero(np.diff(levels)) + 1, [len(levels)]])
     for first, stop in itertools.pairwise(breaks):
@@ -257,7 +257,7 @@ def _draw_path(canvas: _Canvas, path: CoursePath, vmax_mps: float) -> None:
     _draw_direction_arrows(canvas, path)
 
 
-def _draw_direction_arrows(canvas: _Canvas, path: CoursePath) -> None:
+def _draw_direction_arrows(canvas: Canvas, path: CoursePath) -> None:
     pixels = canvas.pixels(path.east_m, path.north_m)
     count = len(path.s_m)
     for k in np.linspace(0, count - 1, ARROWS + 2).round().astype(int)[1:-1]:
@@ -267,20 +267,20 @@ def _draw_direction_arrows(canvas: _Canvas, path: CoursePath) -> None:
             continue
         tip = pixels[k] + heading / norm * 9.0
         tail = pixels[k] - heading / norm * 9.0
-        cv2.arrowedLine(canvas.image, _point(tail), _point(tip), INK, 1, cv2.LINE_AA, 0, 0.6)
+        cv2.arrowedLine(canvas.image, to_point(tail), to_point(tip), INK, 1, cv2.LINE_AA, 0, 0.6)
 
 
-def _draw_waypoints(canvas: _Canvas, course: Course) -> None:
+def _draw_waypoints(canvas: Canvas, course: Course) -> None:
     pixels = canvas.pixels(course.east_m, course.north_m)
     every = max(1, math.ceil(len(pixels) / MAX_LABELS))
     labels: list[tuple[np.ndarray, list[str]]] = []
     # Long courses show every n-th waypoint only, so the markers do not bury the path.
     for pixel, waypoint in zip(pixels[::every], course.waypoints[::every], strict=True):
-        cv2.circle(canvas.image, _point(pixel), 4, PAPER, -1, cv2.LINE_AA)
-        cv2.circle(canvas.image, _point(pixel), 4, INK, 1, cv2.LINE_AA)
+        cv2.circle(canvas.image, to_point(pixel), 4, PAPER, -1, cv2.LINE_AA)
+        cv2.circle(canvas.image, to_point(pixel), 4, INK, 1, cv2.LINE_AA)
         _add_label(labels, pixel, str(waypoint.number))
     for pixel, numbers in labels:
-        _text(canvas.image, ",".join(numbers), pixel + np.array([7.0, -7.0]), 0.45)
+        draw_text(canvas.image, ",".join(numbers), pixel + np.array([7.0, -7.0]), 0.45)
 
 
 def _add_label(labels: list[tuple[np.ndarray, list[str]]], pixel: np.ndarray, number: str) -> None:
@@ -292,23 +292,23 @@ def _add_label(labels: list[tuple[np.ndarray, list[str]]], pixel: np.ndarray, nu
     labels.append((pixel, [number]))
 
 
-def _draw_start_finish(canvas: _Canvas, course: Course) -> None:
+def draw_start_finish(canvas: Canvas, course: Course) -> None:
     start, finish = canvas.pixels(course.east_m[[0, -1]], course.north_m[[0, -1]])
     corner = np.array([8.0, 8.0])
-    cv2.rectangle(canvas.image, _point(finish - corner), _point(finish + corner), FINISH_COLOR, -1, cv2.LINE_AA)
-    cv2.circle(canvas.image, _point(start), 8, START_COLOR, -1, cv2.LINE_AA)
-    _text(canvas.image, "START", start + np.array([-70.0, -14.0]), 0.6, START_COLOR)
-    _text(canvas.image, "FINISH", finish + np.array([14.0, 26.0]), 0.6, FINISH_COLOR)
+    cv2.rectangle(canvas.image, to_point(finish - corner), to_point(finish + corner), FINISH_COLOR, -1, cv2.LINE_AA)
+    cv2.circle(canvas.image, to_point(start), 8, START_COLOR, -1, cv2.LINE_AA)
+    draw_text(canvas.image, "START", start + np.array([-70.0, -14.0]), 0.6, START_COLOR)
+    draw_text(canvas.image, "FINISH", finish + np.array([14.0, 26.0]), 0.6, FINISH_COLOR)
 
 
-def _draw_header(canvas: _Canvas, course: Course, path: CoursePath, title: str) -> None:
+def _draw_header(canvas: Canvas, course: Course, path: CoursePath, title: str) -> None:
     summary = (
         f"{len(course.waypoints)} waypoints, {_distance(course.length_m)}, "
         f"corridor {_range(2.0 * course.half_width_m)} m wide, "
         f"drive time {_duration(path.drive_time_s())}"
     )
-    _text(canvas.image, title, np.array([MARGIN_PX, 28.0]), 0.7)
-    _text(canvas.image, summary, np.array([MARGIN_PX, 52.0]), 0.5)
+    draw_text(canvas.image, title, np.array([MARGIN_PX, 28.0]), 0.7)
+    draw_text(canvas.image, summary, np.array([MARGIN_PX, 52.0]), 0.5)
 
 
 def _distance(metres: float) -> str:
@@ -320,55 +320,56 @@ def _range(values: np.ndarray) -> str:
     return low if low == high else f"{low}-{high}"
 
 
-def _draw_scale_bar(canvas: _Canvas) -> None:
-    length_m = _nice_length(canvas.image.shape[1] / 5.0 / canvas.px_per_m)
+def draw_scale_bar(canvas: Canvas) -> None:
+    length_m = nice_length(canvas.image.shape[1] / 5.0 / canvas.px_per_m)
     length_px = length_m * canvas.px_per_m
     y = canvas.image.shape[0] - FOOTER_PX / 2.0
     left = np.array([MARGIN_PX, y])
     right = left + np.array([length_px, 0.0])
-    cv2.line(canvas.image, _point(left), _point(right), INK, 3)
+    cv2.line(canvas.image, to_point(left), to_point(right), INK, 3)
     for end in (left, right):
         tick = np.array([0.0, 6.0])
-        cv2.line(canvas.image, _point(end - tick), _point(end + tick), INK, 2)
-    _text(canvas.image, f"{length_m:g} m", left + np.array([0.0, -12.0]), 0.5)
+        cv2.line(canvas.image, to_point(end - tick), to_point(end + tick), INK, 2)
+    draw_text(canvas.image, f"{length_m:g} m", left + np.array([0.0, -12.0]), 0.5)
 
 
-def _nice_length(target_m: float) -> float:
+def nice_length(target_m: float) -> float:
     """The largest 1, 2 or 5 times a power of ten not above ``target_m``."""
     power = 10.0 ** math.floor(math.log10(target_m))
     return max(step * power for step in (1.0, 2.0, 5.0) if step * power <= target_m)
 
 
-def _draw_speed_legend(canvas: _Canvas, vmax_mps: float) -> None:
+def draw_speed_legend(canvas: Canvas, vmax_mps: float, title: str = "desired speed") -> None:
+    """The speed colour bar in the footer's right corner."""
     width_px, height_px = 256, 12
     right = canvas.image.shape[1] - MARGIN_PX
     top = canvas.image.shape[0] - FOOTER_PX // 2 - height_px // 2
-    colors = _speed_colors(np.linspace(0.0, vmax_mps, width_px), vmax_mps)
+    colors = speed_colors(np.linspace(0.0, vmax_mps, width_px), vmax_mps)
     canvas.image[top : top + height_px, right - width_px : right] = colors[None, :, :]
     cv2.rectangle(canvas.image, (right - width_px, top), (right, top + height_px), INK, 1)
-    _text(canvas.image, "desired speed", np.array([right - width_px, top - 8.0]), 0.5)
-    _text(canvas.image, "0", np.array([right - width_px, top + height_px + 18.0]), 0.45)
+    draw_text(canvas.image, title, np.array([right - width_px, top - 8.0]), 0.5)
+    draw_text(canvas.image, "0", np.array([right - width_px, top + height_px + 18.0]), 0.45)
     top_label = f"{vmax_mps:.1f} m/s ({vmax_mps / MPH_TO_MPS:.0f} mph)"
     label_w = cv2.getTextSize(top_label, FONT, 0.45, 1)[0][0]
-    _text(canvas.image, top_label, np.array([right - label_w, top + height_px + 18.0]), 0.45)
+    draw_text(canvas.image, top_label, np.array([right - label_w, top + height_px + 18.0]), 0.45)
 
 
-def _draw_north_arrow(canvas: _Canvas) -> None:
+def draw_north_arrow(canvas: Canvas) -> None:
     """In the header's right corner, clear of the map."""
     x = canvas.image.shape[1] - MARGIN_PX / 2.0
-    cv2.arrowedLine(canvas.image, _point([x, HEADER_PX - 8.0]), _point([x, 12.0]), INK, 2, cv2.LINE_AA, 0, 0.3)
-    _text(canvas.image, "N", np.array([x - 24.0, 30.0]), 0.55)
+    cv2.arrowedLine(canvas.image, to_point([x, HEADER_PX - 8.0]), to_point([x, 12.0]), INK, 2, cv2.LINE_AA, 0, 0.3)
+    draw_text(canvas.image, "N", np.array([x - 24.0, 30.0]), 0.55)
 
 
-def _text(image: np.ndarray, text: str, origin: np.ndarray, scale: float, color: Color = INK) -> None:
+def draw_text(image: np.ndarray, text: str, origin: np.ndarray, scale: float, color: Color = INK) -> None:
     """Text with a white halo, readable over the corridor and the path, kept inside the image."""
     (width, height), _ = cv2.getTextSize(text, FONT, scale, 1)
     x = min(max(float(origin[0]), 3.0), image.shape[1] - width - 3.0)
     y = min(max(float(origin[1]), height + 3.0), image.shape[0] - 3.0)
-    cv2.putText(image, text, _point([x, y]), FONT, scale, PAPER, 4, cv2.LINE_AA)
-    cv2.putText(image, text, _point([x, y]), FONT, scale, color, 1, cv2.LINE_AA)
+    cv2.putText(image, text, to_point([x, y]), FONT, scale, PAPER, 4, cv2.LINE_AA)
+    cv2.putText(image, text, to_point([x, y]), FONT, scale, color, 1, cv2.LINE_AA)
 
 
-def _point(pixel: Any) -> tuple[int, int]:
+def to_point(pixel: Any) -> tuple[int, int]:
     x, y = np.round(np.asarray(pixel, dtype=float)).astype(int)
     return int(x), int(y)

@@ -11,6 +11,7 @@ from brain.rddf_cli import add_rddf_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
 from rascal.logtools import add_log_commands
+from rascal.report import add_report_command
 from rascal.units import add_deploy_commands
 
 # Commands with their own argument parsers: `rascal WORDS ...` hands the rest to MODULE.main.
@@ -103,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_rddf_commands(commands)
     add_log_commands(commands)
     add_deploy_commands(commands)
+    add_report_command(commands)
     return parser
 
 

@@ -13,7 +13,7 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, NamedTuple
+from typing import IO, Any, NamedTuple
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
@@ -21,7 +21,8 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from zstandard import ZstdError
 
-from protocol.codec import HEADER, HEADER_BYTES, MAGIC
+from protocol.auth import TAG_BYTES
+from protocol.codec import FLAG_SIGNED, HEADER, HEADER_BYTES, MAGIC, decode_body
 from protocol.errors import ProtocolError
 from protocol.replay import ReplayGuard
 from rascal.record_schema import RAW_ENCODING
@@ -115,6 +116,15 @@ def _datagram(path: Path, record: Message) -> Datagram:
     )
     channel = data[HEADER_BYTES : HEADER_BYTES + channel_len].decode("ascii", errors="replace")
     return Datagram(channel, source_id, seq, t_meas_ns, t_pub_ns, record.log_time, type_id, bytes(data))
+
+
+def decode(datagram: Datagram) -> Any:
+    """The typed message a recorded datagram carries; ProtocolError if its body does not decode.
+    The tag is not checked again: the recorder wrote only what its bus had authenticated."""
+    data = datagram.data
+    end = len(data) - TAG_BYTES if data[3] & FLAG_SIGNED else len(data)
+    body = memoryview(data)[HEADER_BYTES + data[10] : end]  # byte 10: the channel name's length
+    return decode_body(datagram.type_id, body, datagram.source_id)
 
 
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
@@ -251,6 +261,7 @@ __all__ = [
     "SequenceReport",
     "StreamSequence",
     "check_sequences",
+    "decode",
     "iter_datagrams",
     "read_metadata",
 ]

@@ -24,18 +24,18 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from protocol.auth import TAG_BYTES
-from protocol.codec import FLAG_SIGNED, HEADER_BYTES, decode_body
 from protocol.errors import ProtocolError
 from protocol.schema import info_for_id
 from rascal.bustools import make_console, to_jsonable, tool_bus
 from rascal.logread import (
     END_METADATA,
     RUN_METADATA,
+    Datagram,
     RecordingError,
     Scan,
     SequenceChecker,
     SequenceReport,
+    decode,
     iter_datagrams,
 )
 
@@ -175,16 +175,14 @@ def echo_lines(path: str | Path, channels: str | None, count: int | None) -> Ite
                 "t_pub_ns": datagram.t_pub_ns,
                 "log_time_ns": datagram.log_time_ns,
                 "age_ms": round((datagram.log_time_ns - datagram.t_meas_ns) / 1e6, 3),
-                "msg": _body_json(datagram.type_id, datagram.data),
+                "msg": _body_json(datagram),
             }
         )
 
 
-def _body_json(type_id: int, data: bytes) -> Any:
-    end = len(data) - TAG_BYTES if data[3] & FLAG_SIGNED else len(data)
-    body = memoryview(data)[HEADER_BYTES + data[10] : end]  # byte 10: channel length
+def _body_json(datagram: Datagram) -> Any:
     try:
-        return to_jsonable(decode_body(type_id, body))
+        return to_jsonable(decode(datagram))
     except ProtocolError as exc:
         return {"undecodable": str(exc)}
 

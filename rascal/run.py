@@ -41,6 +41,7 @@ from rascal.deployment import (
     load_deployment,
 )
 from rascal.module import Runtime
+from rascal.report import report_run
 from rascal.supervisor import SUPERVISOR_SOURCE_ID, Supervisor, module_state
 from rascal.view.module import viewer_spec
 
@@ -181,6 +182,7 @@ class RunSupervisor(Supervisor):
         elapsed = time.monotonic() - self.started_s
         return {
             "deployment": self.deployment.name,
+            "deployment_file": str(self.deployment.path.resolve()),  # for rascal report RUN_DIR
             "finished": self.finished,
             "elapsed_s": round(elapsed, 2),
             "course_length_m": self.frame.length_m if self.frame else None,
@@ -225,6 +227,7 @@ def run(
         console.print(f"live view: http://127.0.0.1:{view_port}/")
     runtime.run(supervisor)
     console.print(f"run {'finished the course' if supervisor.finished else 'ended'}; logs and summary in {run_dir}/")
+    report_run(run_dir, deployment, console)
     return 0, run_dir
 
 

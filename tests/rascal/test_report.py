@@ -1,0 +1,174 @@
+"""The run report: from a recorded drive (run.mcap + summary.json) to five images that show what
+happened where it happened: the track's pixels lie on the course where the vehicle drove, in the
+colour of its speed; the hazard the brain mapped is red on the course map; the speed chart's true
+speed is a flat line at the speed driven; `rascal report RUN_DIR` rebuilds them."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from rich.console import Console
+
+from brain.course_config import load_course
+from brain.fusion.snapshot import encode_snapshot
+from brain.grid import GridWindow
+from brain.planning.frame import CorridorFrame
+from brain.rddf_cli import Canvas, speed_colors
+from protocol import channels
+from protocol.messages import ModuleStatus, PathPoint, SimTruth, VehicleState
+from protocol.messages import Path as PlannedPath
+from rascal.cli import main
+from rascal.deployment import load_deployment
+from rascal.report import CHART_SIZE, JITTER, TRUE, build_report, report_run
+from rascal.report_data import read_run
+from rascal.report_track import HAZARD
+from tests.integration.test_closed_loop import RDDF, SCENARIO  # ~300 m with a rock at 120 m
+from tests.rascal.test_recording import make_recording
+
+T0_NS = 1_700_000_000_000_000_000
+SPEED_MPS = 5.0
+DRIVE_S = 40.0
+HAZARD_AT = (60.0, -4.0)  # station, offset: something the brain mapped (nothing is there in the scenario)
+
+
+def _drive(frame: CorridorFrame) -> list[tuple[str, object, int]]:
+    """40 s at 5 m/s, weaving 1.5 m about the centre line; the navigation estimate 0.2 m to the
+    left; a planned path along the centre line at 5 Hz; a map with one hazard at 1 Hz; heartbeats."""
+    messages: list[tuple[str, object, int]] = []
+    hazard_e, hazard_n = frame.to_enu(*HAZARD_AT)
+    for k in range(int(DRIVE_S * 100)):
+        t_s = k / 100.0
+        t_ns = T0_NS + round(t_s * 1e9)
+        s = 2.0 + SPEED_MPS * t_s
+        d = 1.5 * math.sin(s / 20.0)
+        east, north = (float(v) for v in frame.to_enu(s, d))
+        yaw = float(frame.heading_at(s))
+        messages.append(
+            (channels.SIM_TRUTH, SimTruth(east, north, yaw, SPEED_MPS, 0.0, 0.0, s, 0, scenario_time_s=t_s), t_ns)
+        )
+        if k % 2 == 0:
+            nav_e, nav_n = (float(v) for v in frame.to_enu(s, d + 0.2))
+            state = VehicleState(nav_e, nav_n, 0.0, yaw, SPEED_MPS, 0.0, 0.0, 0.0, (0.0,) * 25, 3)
+            messages.append((channels.VEHICLE_STATE, state, t_ns + 1000))
+        if k % 20 == 0:
+            ahead = np.arange(s, s + 40.0, 2.0)
+            pe, pn = frame.to_enu(ahead, np.zeros_like(ahead))
+            points = tuple(PathPoint(float(e), float(n), SPEED_MPS) for e, n in zip(pe, pn, strict=True))
+            messages.append((channels.PATH, PlannedPath(k, points, False), t_ns + 2000))
+        if k % 100 == 0:
+            window = GridWindow(east - 20.0, north - 20.0, 0.4, 100, 100)
+            probability = np.full(window.shape, 0.5, dtype=np.float32)
+            probability[40:60, 40:60] = 0.1  # seen clear round the vehicle
+            col, row = (
+                int((float(hazard_e) - window.origin_east_m) / 0.4),
+                int((float(hazard_n) - window.origin_north_m) / 0.4),
+            )
+            if 2 <= row < 98 and 2 <= col < 98:
+                probability[row - 2 : row + 3, col - 2 : col + 3] = 1.0
+            messages.append((channels.MAP_SNAPSHOT, encode_snapshot(window, probability), t_ns + 3000))
+            status = ModuleStatus("sim", 1, t_s, 10_000_000, 1_000_000 + 50_000 * (k // 100), 0, 0, 0, (), 2, 0, 0)
+            messages.append((channels.MODULE_STATUS, status, t_ns + 4000))
+    return messages
+
+
+@pytest.fixture
+def run_dir(tmp_path: Path) -> Path:
+    (tmp_path / "course.rddf").write_text(RDDF)
+    (tmp_path / "scenario.toml").write_text(SCENARIO)
+    deploy = tmp_path / "deploy.toml"
+    deploy.write_text(
+        '[deployment]\nname = "short"\nbus = "udpm://239.255.1.2:7700?ttl=0"\n'
+        'scenario = "scenario.toml"\ncourse = "course.rddf"\n[modules.time_service]\n'
+    )
+    course = load_course(tmp_path / "course.rddf")
+    run = tmp_path / "runs" / "20260101-000000"
+    run.mkdir(parents=True)
+    make_recording(run / "run.mcap", _drive(CorridorFrame(course.interpolate())))
+    drive = {"finished": False, "completion": 0.62, "route_length_m": 327.0, "time_s": DRIVE_S, "collisions": 0}
+    summary = {"deployment": "short", "deployment_file": str(deploy), "finished": False, "drive": drive}
+    (run / "summary.json").write_text(json.dumps(summary))
+    return run
+
+
+def _colour_pixels(image: np.ndarray, colour: tuple[int, int, int], tolerance: int = 12) -> np.ndarray:
+    """(row, column) of every pixel within ``tolerance`` of ``colour`` (BGR) in each channel."""
+    return np.argwhere(np.all(np.abs(image.astype(int) - np.array(colour)) <= tolerance, axis=-1))
+
+
+def test_the_report_draws_the_drive_where_it_happened(run_dir: Path) -> None:
+    report = build_report(run_dir)
+    assert set(report.images) == {"track", "map", "speed", "cross_track", "timing"}
+    images = {name: cv2.imread(str(path)) for name, path in report.images.items()}
+    assert all(image is not None for image in images.values())
+    data = read_run(run_dir)
+
+    # The course map: every track sample lies on a pixel of the speed's colour.
+    track = images["track"]
+    canvas = Canvas(data.course.corridor.bounds_m(), 1600)
+    assert track.shape == canvas.image.shape
+    expected = speed_colors(np.array([SPEED_MPS]), float(data.course.speed_limit_mps.max()))[0].astype(int)
+    truth = data.truth
+    assert truth is not None and len(truth) == DRIVE_S * 10
+    pixels = np.round(canvas.pixels(truth.east_m, truth.north_m)).astype(int)
+    on_track = [np.abs(track[y, x].astype(int) - expected).max() <= 40 for x, y in pixels[5:-5:10]]
+    assert np.mean(on_track) >= 0.9, "the track is drawn where the vehicle drove, in its speed's colour"
+    hazard_x, hazard_y = np.round(canvas.pixels(*data.frame.to_enu(*HAZARD_AT))).astype(int)
+    b, _g, r = track[hazard_y, hazard_x].astype(int)
+    assert r - b > 80, "the hazard the brain mapped is red on the course map"
+    start_far = canvas.pixels(*data.frame.to_enu(300.0, -8.0)).round().astype(int)
+    assert (track[start_far[1], start_far[0]] != expected).any(), "no track where the vehicle never went"
+
+    # The final map: its hazard cells are red.
+    assert len(_colour_pixels(images["map"], HAZARD, 30)) > 50
+
+    # Speed: the true speed is a flat line over the two thirds of the course driven.
+    speed = images["speed"]
+    assert speed.shape[:2] == (CHART_SIZE[1], CHART_SIZE[0])
+    red = _colour_pixels(speed, TRUE)
+    row = np.bincount(red[:, 0]).argmax()
+    line = red[np.abs(red[:, 0] - row) <= 2]
+    assert len(line) >= 0.8 * len(red) and len(line) > 500, "one flat line (and the legend's swatch)"
+    assert 0.45 * CHART_SIZE[0] < np.ptp(line[:, 1]) < 0.75 * CHART_SIZE[0]
+
+    # Cross-track: the weave is in the top panel and the distance to the path in the bottom one.
+    cross = images["cross_track"]
+    assert cross.shape[:2] == (2 * CHART_SIZE[1], CHART_SIZE[0])
+    weave = _colour_pixels(cross[: CHART_SIZE[1]], TRUE)
+    assert len(weave) > 500 and np.ptp(weave[:, 0]) > 40, "a 1.5 m weave moves the line up and down"
+    assert len(_colour_pixels(cross[CHART_SIZE[1] :], TRUE)) > 500
+    assert (
+        data.paths
+        and data.nav is not None
+        and np.allclose(data.nav.d_m, 1.5 * np.sin(data.nav.s_m / 20) + 0.2, atol=0.05)
+    )
+
+    # Timing: one row (sim), its jitter bar drawn.
+    timing = images["timing"]
+    assert timing.shape[1] == CHART_SIZE[0] and len(_colour_pixels(timing, JITTER, 5)) > 100
+    assert data.modules["sim"].heartbeats == DRIVE_S and data.modules["sim"].jitter_ms[-1] == pytest.approx(2.95)
+
+
+def test_rascal_report_rebuilds_the_images(run_dir: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["report", str(run_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "track.png" in out and "timing.png" in out and "62.0 % of 327 m" in out
+    for image in (run_dir / "report").glob("*.png"):
+        image.unlink()
+    assert main(["report", str(run_dir), "--deployment", str(run_dir.parents[1] / "deploy.toml")]) == 0
+    assert len(list((run_dir / "report").glob("*.png"))) == 5
+
+
+def test_what_is_not_a_run_gets_a_clear_error(tmp_path: Path, run_dir: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["report", str(tmp_path / "nothing")]) == 2
+    assert "no summary.json" in capsys.readouterr().err
+    (run_dir / "run.mcap").write_bytes(b"not mcap at all")
+    assert main(["report", str(run_dir)]) == 2
+    assert "not a readable MCAP file" in capsys.readouterr().err
+    console = Console(record=True, width=200)
+    assert report_run(run_dir, load_deployment(run_dir.parents[1] / "deploy.toml"), console) is None
+    assert "no report:" in console.export_text()
