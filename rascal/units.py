@@ -74,19 +74,19 @@ def write_units(
         if not path.is_absolute():
             raise ValueError(f"{what} {path}: systemd needs an absolute path")
     key = deployment.key_file or key_file or DEFAULT_KEY_FILE
-    env = {
-        "RASCAL_DEPLOYMENT": str(deployment.path.resolve()),
-        "RASCAL_BUS_URL": deployment.bus,
-        "RASCAL_KEY_FILE": str(key),
-    }
-    for name, value in env.items():
-        if _ENV_VALUE.fullmatch(value) is None:
-            raise ValueError(f"{name}={value!r}: quotes, backslashes, $ and backquotes cannot go in rascal.env")
     written: dict[str, list[Path]] = {}
     for host in deployment.hosts:
         specs = deployment.on_host(host)
         if not specs:
             continue
+        env = {
+            "RASCAL_DEPLOYMENT": str(deployment.path.resolve()),
+            "RASCAL_BUS_URL": deployment.bus_on(host),  # what this host's modules use (its own interface)
+            "RASCAL_KEY_FILE": str(key),
+        }
+        for name, value in env.items():
+            if _ENV_VALUE.fullmatch(value) is None:
+                raise ValueError(f"{name}={value!r}: quotes, backslashes, $ and backquotes cannot go in rascal.env")
         for name, what in ((host, "host"), *((spec.label, "module label") for spec in specs)):
             if _UNIT_NAME.fullmatch(name) is None:
                 raise ValueError(f"{deployment.path}: {what} {name!r} cannot name a systemd unit (A-Z a-z 0-9 _ . : -)")
