@@ -23,6 +23,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
+# The receive-path fuzz campaign: a million generated datagrams (FUZZ_ARGS="--inputs N --seed S").
+fuzz: $(STAMP)
+	$(BIN)/python -m tests.protocol.fuzz_campaign $(FUZZ_ARGS)
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .

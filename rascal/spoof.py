@@ -228,7 +228,9 @@ def spoof(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rascal spoof", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="rascal spoof", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("kind", choices=KINDS)
     parser.add_argument("--bus", help="bus URL (default: $RASCAL_BUS_URL); loopback only")
     parser.add_argument("--channel", default=channels.ACTUATOR_COMMAND, help="channel to spoof (default %(default)s)")
@@ -237,7 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--sign",
         choices=("wrong", "none", "deployment"),
         default="wrong",
-        help="sign with a random wrong key (default), not at all, or (mutate/truncate/oversize) the deployment key",
+        help="sign with a random wrong key (default), not at all, or (mutate, truncate) the deployment key",
     )
     parser.add_argument("--key-file", type=Path, help="the deployment key for --sign deployment")
     parser.add_argument("--recording", type=Path, help="run.mcap to replay (kind replay)")
@@ -264,8 +266,8 @@ def _run(args: argparse.Namespace) -> int:
         raise SpoofError(f"--rate must be in (0, {MAX_RATE_HZ:,.0f}] per second")
     if not 1 <= args.source_id <= 0xFFFF:
         raise SpoofError("--source-id must be 1..65535")
-    if args.sign == "deployment" and args.kind not in ("mutate", "truncate", "oversize"):
-        raise SpoofError("--sign deployment is only for mutate, truncate and oversize (forging with it is bus pub)")
+    if args.sign == "deployment" and args.kind not in ("mutate", "truncate"):
+        raise SpoofError("--sign deployment is only for mutate and truncate (forging with it is rascal bus pub)")
     if args.kind == "replay" and args.recording is None:
         raise SpoofError("replay needs --recording RUN.mcap")
     keyring: Keyring | None = None

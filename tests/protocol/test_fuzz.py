@@ -561,18 +561,17 @@ def _describe(datagram: bytes) -> str:
     return f"{len(datagram)} B: {datagram[:80].hex()}{'...' if len(datagram) > 80 else ''}"
 
 
-@pytest.mark.parametrize("signed", [True, False], ids=["signed", "unsigned"])
-def test_random_and_mutated_datagrams_only_ever_raise_protocol_error(signed: bool) -> None:
-    """100,000 random and mutated datagrams per mode: the sans-IO path raises only ProtocolError
-    and only delivers well-formed messages; the Bus never raises and accounts for every datagram."""
-    rng = random.Random(SEED + signed)
+def fuzz(signed: bool, datagrams: int, seed: int) -> tuple[SansIoReceiver, BusReceiver]:
+    """Feed ``datagrams`` generated datagrams to both receivers; raise AssertionError naming the
+    datagram, mode and seed on the first that raises anything but ProtocolError or is unaccounted."""
+    rng = random.Random(seed + signed)
     keys = keyring() if signed else None
     clock = ManualClock(T0_NS)
     traffic = Traffic(rng, keys, clock)
     sans_io = SansIoReceiver(keys)
-    bus = BusReceiver(f"fuzz-{'signed' if signed else 'unsigned'}-{SEED}", keys, clock)
+    bus = BusReceiver(f"fuzz-{'signed' if signed else 'unsigned'}-{seed}", keys, clock)
     sent = 0
-    while sent < DATAGRAMS_PER_MODE:
+    while sent < datagrams:
         for datagram in traffic.batch():
             sent += 1
             try:
@@ -580,10 +579,19 @@ def test_random_and_mutated_datagrams_only_ever_raise_protocol_error(signed: boo
                 bus.receive(datagram)
             except Exception as exc:
                 raise AssertionError(
-                    f"datagram #{sent} ({'signed' if signed else 'unsigned'}, seed {SEED:#x}) "
+                    f"datagram #{sent} ({'signed' if signed else 'unsigned'}, seed {seed:#x}) "
                     f"raised {type(exc).__name__}: {exc}\n{_describe(datagram)}"
                 ) from exc
     bus.finish(clock)
+    return sans_io, bus
+
+
+@pytest.mark.parametrize("signed", [True, False], ids=["signed", "unsigned"])
+def test_random_and_mutated_datagrams_only_ever_raise_protocol_error(signed: bool) -> None:
+    """100,000 random and mutated datagrams per mode: the sans-IO path raises only ProtocolError
+    and only delivers well-formed messages; the Bus never raises and accounts for every datagram.
+    (``make fuzz`` runs the same generators over a million more, tests/protocol/fuzz_campaign.py.)"""
+    sans_io, bus = fuzz(signed, DATAGRAMS_PER_MODE, SEED)
     outcomes = sans_io.outcomes
     # The traffic really exercised the deep paths, not just the cheap early rejections.
     assert outcomes["accepted"] > 1000 and bus.typed_accepted > 1000
