@@ -27,10 +27,23 @@ from rascal.deployment import load_deployment
 from rascal.report import CHART_SIZE, JITTER, TRUE, build_report, report_run
 from rascal.report_data import read_run
 from rascal.report_track import HAZARD
-from tests.integration.test_closed_loop import RDDF, SCENARIO  # ~300 m with a rock at 120 m
 from tests.rascal.test_recording import make_recording
 
 T0_NS = 1_700_000_000_000_000_000
+# About 320 m: east, then north-east; 25 mph limit, 40 ft boundary; one rock on the way.
+RDDF = "1,34.8650000,-116.8900000,40,25\n2,34.8650000,-116.8880000,40,25\n3,34.8660000,-116.8870000,40,25\n"
+SCENARIO = """
+[scenario]
+rddf = "course.rddf"
+
+[[obstacle]]
+name = "rock"
+shape = "cylinder"
+at_m = 120.0
+offset_m = 0.8
+radius_m = 0.6
+height_m = 1.0
+"""
 SPEED_MPS = 5.0
 DRIVE_S = 40.0
 HAZARD_AT = (60.0, -4.0)  # station, offset: something the brain mapped (nothing is there in the scenario)
