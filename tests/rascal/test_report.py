@@ -185,3 +185,22 @@ def test_what_is_not_a_run_gets_a_clear_error(tmp_path: Path, run_dir: Path, cap
     console = Console(record=True, width=200)
     assert report_run(run_dir, load_deployment(run_dir.parents[1] / "deploy.toml"), console) is None
     assert "no report:" in console.export_text()
+
+
+def test_a_run_without_the_simulator_or_a_map_still_gets_its_report(run_dir: Path) -> None:
+    """A real vehicle (or a host that hears no simulator): the navigation estimate stands in."""
+    course = load_course(run_dir.parents[1] / "course.rddf")
+    kept = [
+        m
+        for m in _drive(CorridorFrame(course.interpolate()))
+        if m[0] not in (channels.SIM_TRUTH, channels.MAP_SNAPSHOT)
+    ]
+    (run_dir / "run.mcap").unlink()
+    make_recording(run_dir / "run.mcap", kept)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    (run_dir / "summary.json").write_text(json.dumps({**summary, "drive": None}))
+    report = build_report(run_dir)
+    assert set(report.images) == {"track", "speed", "cross_track", "timing"}, "no map without a snapshot"
+    assert report.drive.startswith("not finished: course 327 m")
+    cross = cv2.imread(str(report.images["cross_track"]))
+    assert len(_colour_pixels(cross[CHART_SIZE[1] :], TRUE)) > 500, "the estimate's distance from the path"
