@@ -80,6 +80,9 @@ def report_run(run_dir: Path, deployment: Deployment, console: Console) -> Repor
     except (ReportError, ValueError, OSError) as exc:
         console.print(f"no report: {exc}", markup=False, highlight=False)
         return None
+    except Exception as exc:  # a report bug must not turn a good run into a failed one
+        console.print(f"no report: {type(exc).__name__}: {exc} (rascal report {run_dir} to retry)", markup=False)
+        return None
     console.print(f"report: {report.directory}/ ({', '.join(p.name for p in report.images.values())})", markup=False)
     return report
 
