@@ -55,7 +55,6 @@ FRAGMENT_CHANNELS_REMEMBERED = 256
 _U16 = struct.Struct("<H")
 _U32 = struct.Struct("<I")
 _PERCENTS = ("loss_pct", "duplicate_pct", "reorder_pct", "corrupt_pct")
-_MILLISECONDS = ("delay_ms", "jitter_ms", "reorder_ms")
 
 
 class FaultConfigError(ValueError):
