@@ -212,18 +212,21 @@ def spoof(
     total = 0
     pending: list[bytes] = []
     variant = channel = ""
-    while total < count:
-        due = started + total / rate_hz
-        now = monotonic()
-        if max(due, now) - started >= duration_s:
-            break
-        if due > now:
-            sleep(due - now)
-        if not pending:
-            variant, channel, pending = make()
-        transport.send(channel, pending.pop(0))
-        sent[f"{kind}: {variant}"] += 1
-        total += 1
+    try:
+        while total < count:
+            due = started + total / rate_hz
+            now = monotonic()
+            if max(due, now) - started >= duration_s:
+                break
+            if due > now:
+                sleep(due - now)
+            if not pending:
+                variant, channel, pending = make()
+            transport.send(channel, pending.pop(0))
+            sent[f"{kind}: {variant}"] += 1
+            total += 1
+    except KeyboardInterrupt:
+        pass  # Ctrl-C ends the run early; the report still says what was sent
     return sent
 
 
