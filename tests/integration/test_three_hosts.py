@@ -44,7 +44,8 @@ CUT_AT_M = 60.0
 CUT_MIN_SPEED_MPS = 4.0
 PATH_MAX_AGE_S = 0.5  # control's default; VEHICLE_STATE's (0.2 s) goes stale first
 STOPPED_MPS = 0.1
-DRIVE_TIMEOUT_S = 200.0  # the whole short course, start-up included, on a loaded 2-core machine
+DRIVE_TIMEOUT_S = 300.0  # the short course with start-up: 55-65 s at load 15-25, 190 s at load 45
+ENDING_TIMEOUT_S = 120.0  # after the course or Ctrl-C: pause, stop the modules, write the report
 
 
 @pytest.fixture
@@ -151,6 +152,15 @@ class Stack:
             if module["restarts"]
         }
 
+    def rejected(self) -> dict[str, int]:
+        """Datagrams any module refused (a recorder hears all: two senders sharing an id show here)."""
+        return {
+            f"{host}/{label}": module["rx_rejected"]
+            for host in HOSTS
+            for label, module in self.summary(host)["modules"].items()
+            if module["rx_rejected"]
+        }
+
 
 def drive_host_listener(network: BridgedHosts, deploy: Path, key_file: Path) -> Listener:
     """The test's ears on the drive host's side of the network."""
@@ -168,7 +178,7 @@ def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_br
     # 1. The split stack completes the course; each host ends by itself at the finish.
     stack = Stack(network, deploy, tmp_path / "course", DRIVE_TIMEOUT_S)
     try:
-        stack.wait(DRIVE_TIMEOUT_S + 30.0)
+        stack.wait(DRIVE_TIMEOUT_S + ENDING_TIMEOUT_S)
     finally:
         stack.kill()
     drive = stack.summary("drive")["drive"]
@@ -177,6 +187,7 @@ def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_br
     assert drive["finished"] and drive["collisions"] == 0 and drive["corridor_exits"] == 0
     assert drive["cross_track_rms_m"] <= 0.3
     assert stack.restarts() == {}
+    assert stack.rejected() == {}
 
     # 2. Again; mid-drive the brain host loses its link.
     stack = Stack(network, deploy, tmp_path / "cut", DRIVE_TIMEOUT_S)
@@ -223,7 +234,7 @@ def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_br
         listener.close()
         stack.interrupt()
     try:
-        stack.wait(30.0)
+        stack.wait(ENDING_TIMEOUT_S)
     finally:
         stack.kill()
     assert stack.restarts() == {}, "a supervisor restarted a module over the cut link"
