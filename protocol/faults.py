@@ -38,6 +38,7 @@ import math
 import random
 import re
 import struct
+import sys
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping
@@ -229,8 +230,11 @@ class FaultyTransport(Transport):
         *,
         now_ns: Callable[[], int] = time.monotonic_ns,
         max_held: int = MAX_HELD_DATAGRAMS,
+        report: Callable[[str], None] | None = None,
     ) -> None:
+        """``report``, if given, is handed :meth:`summary` on close (a process's log line)."""
         self.inner = inner
+        self._report = report
         self.rules = tuple(rules)
         self.stats: Counter[str] = Counter()
         self._rngs = [random.Random(rule.seed) for rule in self.rules]
@@ -321,9 +325,16 @@ class FaultyTransport(Transport):
                 stats["delayed"] += 1
                 heapq.heappush(self._held, (self._now_ns() + int(delay_ms * 1e6), next(self._order), datagram))
 
+    def summary(self) -> str:
+        """What the rules did so far, e.g. ``link faults: 5000 matched, lost 1002, delayed 3998``."""
+        counts = ", ".join(f"{name} {count}" for name, count in self.stats.items() if name != "matched")
+        return f"link faults: {self.stats['matched']} matched" + (f", {counts}" if counts else "")
+
     def close(self) -> None:
         self._held.clear()
         self.inner.close()
+        if self._report is not None:
+            self._report(self.summary())
 
 
 def flip_bit(datagram: bytes, rng: random.Random) -> bytes:
@@ -343,4 +354,6 @@ def wrap(transport: Transport, text: str, where: str) -> Transport:
     except FaultConfigError as exc:
         transport.close()
         raise UrlError(str(exc)) from None
-    return FaultyTransport(transport, rules) if rules else transport
+    if not rules:
+        return transport
+    return FaultyTransport(transport, rules, report=lambda line: print(f"{line} ({where})", file=sys.stderr))

@@ -113,3 +113,7 @@ def test_deployment_faults_reach_only_the_module_they_name(bus_url: str, key_fil
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["modules"]["health"]["rx_rejected"] > 0
     assert summary["modules"]["beacon"]["rx_rejected"] == 0
+    # Each process with faults logs what they did as it exits; the others have none.
+    health_log = (run_dir / "health.log").read_text().splitlines()
+    assert "corrupted" in next(line for line in health_log if line.startswith("link faults"))
+    assert "link faults" not in (run_dir / "beacon.log").read_text()

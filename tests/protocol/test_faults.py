@@ -246,6 +246,18 @@ def test_bad_rules_are_refused_naming_the_key(text: str, complaint: str) -> None
         parse_rules(text)
 
 
+def test_a_process_logs_what_its_faults_did_when_it_closes(capsys: pytest.CaptureFixture[str]) -> None:
+    transport = open_transport("mem://faults-log?faults=loss_pct=100")
+    sender = MemTransport("faults-log")
+    transport.listen(channels.GPS)
+    for _ in range(3):
+        sender.send(channels.GPS, b"RB" + bytes(60))
+    assert transport.receive(lambda *_: None, 0.0, 10) == 0
+    transport.close()
+    sender.close()
+    assert "link faults: 3 matched, lost 3 (mem://faults-log?faults=loss_pct=100: faults)" in capsys.readouterr().err
+
+
 def test_urls_and_the_environment_put_faults_on_a_transport(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("RASCAL_FAULTS", raising=False)
     assert isinstance(open_transport("mem://plain"), MemTransport)
