@@ -70,6 +70,7 @@ class ViewState:
     def __init__(self, course: Course | None = None) -> None:
         self.course = course
         self.now_ns = 0  # the newest receive time seen: the view's "now", live or replayed
+        self.start_ns: int | None = None  # the first: times on the page count from it
         self.vehicle: VehicleState | None = None
         self.poses: deque[tuple[int, float, float, float]] = deque(maxlen=POSE_HISTORY)
         self._pose_times: deque[int] = deque(maxlen=POSE_HISTORY)
@@ -102,15 +103,24 @@ class ViewState:
             stats = self.channel_stats[channel] = ChannelStats()
         stats.messages += 1
         stats.arrivals_ns.append(recv_ns)
-        self.now_ns = max(self.now_ns, recv_ns)
+        self._advance(recv_ns)
 
     def handle(self, channel: str, msg: Any, t_meas_ns: int, recv_ns: int) -> None:
         """One decoded message of a drawn channel (others are ignored)."""
         handler = self._handlers.get(channel)
         if handler is None:
             return
-        self.now_ns = max(self.now_ns, recv_ns)
+        self._advance(recv_ns)
         handler(msg, t_meas_ns)
+
+    def _advance(self, recv_ns: int) -> None:
+        self.now_ns = max(self.now_ns, recv_ns)
+        if self.start_ns is None:
+            self.start_ns = recv_ns
+
+    def elapsed_s(self) -> float:
+        """Seconds from the first message to :attr:`now_ns`."""
+        return round((self.now_ns - (self.start_ns or self.now_ns)) / NS, 3)
 
     def _vehicle_state(self, state: VehicleState, t_meas_ns: int) -> None:
         if not _finite(state.east_m, state.north_m, state.yaw_rad):
@@ -184,7 +194,7 @@ class ViewState:
 
     def _health(self, event: HealthEvent, _t_meas_ns: int) -> None:
         self.events.append(
-            {"t_s": round(self.now_ns / NS, 1), "module": event.module, "severity": _severity(event.severity),
+            {"t_s": round(self.elapsed_s(), 1), "module": event.module, "severity": _severity(event.severity),
              "code": event.code, "text": event.text[:200]}
         )  # fmt: skip
         if event.code == "module_restart":  # the supervisor's: "<label> exited with ...; restarting"
@@ -239,7 +249,7 @@ class ViewState:
                        "speed": round(v.speed_mps, 2), "quality": v.quality}  # fmt: skip
         fresh = self.now_ns - DESCRIPTOR_MAX_AGE_NS
         return {
-            "t_s": round(self.now_ns / NS, 3),
+            "t_s": self.elapsed_s(),
             "vehicle": vehicle,
             "path": [[round(p.east_m, 2), round(p.north_m, 2)] for p in self.path.points] if self.path else [],
             "slow": bool(self.path.slow_mode) if self.path else False,
@@ -274,7 +284,7 @@ class ViewState:
             )
         rates = {name: round(stats.rate_hz(now), 1) for name, stats in sorted(self.channel_stats.items())}
         return {
-            "t_s": round(now / NS, 1),
+            "t_s": round(self.elapsed_s(), 1),
             "modules": modules,
             "rates_hz": rates,
             "events": list(self.events),

@@ -13,20 +13,20 @@ const latest = { course: null, scene: null, trail: [], health: null };
 const stats = {
   connected: false, events: 0, frames: 0,
   mapReceived: 0, mapDecoded: 0, mapRendered: 0, mapSkippedByServer: 0,
-  mapLatestSeq: 0, mapRenderedSeq: 0, backlog: 0, maxBacklog: 0, lastRenderLagMs: null, maxRenderLagMs: 0,
+  mapLatestSeq: 0, mapRenderedSeq: 0, backlog: 0, maxBacklog: 0, lastRenderLagMs: null, maxRenderLagMs: 0, lastDecodeMs: null,
   vehiclePx: null, vehicleWorld: null, modules: [], follow: false,
 };
 window.rascalView = stats;
 
 // -- the map: inflate (zlib = "deflate" for DecompressionStream) into an off-screen bitmap ----------
-const LUT = new Uint8ClampedArray(256 * 4);
+const LUT = new Uint32Array(256); // probability x 255 -> RGBA packed as the platform's bytes
+const LUT_BYTES = new Uint8ClampedArray(LUT.buffer);
 for (let v = 0; v < 256; v++) {
   const p = v / 255;
-  if (p > 0.55) LUT.set([235, 50, 40, Math.round(255 * Math.min(1, (p - 0.55) / 0.35))], v * 4);
-  else if (p < 0.45) LUT.set([70, 170, 90, Math.round(90 * (0.45 - p) / 0.45)], v * 4);
-  else LUT.set([0, 0, 0, 0], v * 4);
+  if (p > 0.55) LUT_BYTES.set([235, 50, 40, Math.round(255 * Math.min(1, (p - 0.55) / 0.35))], v * 4);
+  else if (p < 0.45) LUT_BYTES.set([70, 170, 90, Math.round(90 * (0.45 - p) / 0.45)], v * 4);
 }
-let mapImage = null; // {bitmap, seq, received, origin_e, origin_n, res, rows, cols}
+let mapImage = null; // {canvas, seq, received, origin_e, origin_n, res, rows, cols}
 let mapDecoding = false;
 let mapPending = null; // only the newest undecoded snapshot is kept
 
@@ -41,17 +41,22 @@ async function decodeMaps() {
   while (mapPending) {
     const snap = mapPending;
     mapPending = null;
+    const started = performance.now();
     try {
       const cells = await inflate(snap.zlib_b64);
       if (cells.length !== snap.rows * snap.cols) throw new Error("map size mismatch");
       const image = new ImageData(snap.cols, snap.rows);
+      const pixels = new Uint32Array(image.data.buffer);
       for (let r = 0; r < snap.rows; r++) { // row 0 is south: flip so north is up in the bitmap
         const src = r * snap.cols, dst = (snap.rows - 1 - r) * snap.cols;
-        for (let c = 0; c < snap.cols; c++) image.data.set(LUT.subarray(cells[src + c] * 4, cells[src + c] * 4 + 4), (dst + c) * 4);
+        for (let c = 0; c < snap.cols; c++) pixels[dst + c] = LUT[cells[src + c]];
       }
-      const bitmap = await createImageBitmap(image);
-      mapImage = { ...snap, bitmap, zlib_b64: null };
+      const bitmap = document.createElement("canvas");
+      bitmap.width = snap.cols; bitmap.height = snap.rows;
+      bitmap.getContext("2d").putImageData(image, 0, 0);
+      mapImage = { ...snap, canvas: bitmap, zlib_b64: null };
       stats.mapDecoded++;
+      stats.lastDecodeMs = Math.round(performance.now() - started);
     } catch (err) {
       console.error("map snapshot", err);
     }
@@ -126,7 +131,7 @@ function drawMap() {
   const m = mapImage;
   const [x, y] = toScreen(m.origin_e, m.origin_n + m.rows * m.res); // the bitmap's top-left is its north-west corner
   ctx.imageSmoothingEnabled = false;
-  ctx.drawImage(m.bitmap, x, y, m.cols * m.res * view.scale, m.rows * m.res * view.scale);
+  ctx.drawImage(m.canvas, x, y, m.cols * m.res * view.scale, m.rows * m.res * view.scale);
   if (m.seq !== stats.mapRenderedSeq) {
     stats.mapRendered++;
     stats.mapRenderedSeq = m.seq;
@@ -182,7 +187,7 @@ function render() {
   if (stats.frames % 15 === 0) {
     document.getElementById("viewstats").textContent =
       `maps received ${stats.mapReceived}, rendered ${stats.mapRendered}, skipped by server ${stats.mapSkippedByServer}, ` +
-      `backlog ${stats.backlog} (max ${stats.maxBacklog}), last render lag ${stats.lastRenderLagMs} ms`;
+      `backlog ${stats.backlog} (max ${stats.maxBacklog}), last render lag ${stats.lastRenderLagMs} ms, decode ${stats.lastDecodeMs} ms`;
     document.getElementById("status").textContent = JSON.stringify(stats);
   }
   requestAnimationFrame(render);
