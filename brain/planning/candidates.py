@@ -7,7 +7,9 @@ fast vehicle swerves gently and a slow one sharply. A late variant keeps the cur
 just before the conflict. Everything is evaluated at once as (candidates x stations) arrays at
 the published point spacing, against a raster of the hazard clearance across the corridor at
 each station: candidates through a lethal cell there are dropped, the rest are scored
-(footprint cost integral + offset + change from the current path + squared slope), and the
+(footprint cost integral + offset + change from the current path + squared slope + the time
+to drive it under the speed caps it will get: a sharp swerve, or one that shaves an obstacle,
+is slow), and the
 cheapest go through the full `PathGate` in order until one passes; those with room to spare
 first, then tight ones, each within a budget of checks. Failing all, the candidate clear
 furthest may be cut short of its hazard (a partial path, which the planner ends in a stop).
@@ -18,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -25,6 +28,7 @@ from brain.planning.checks import PathGate
 from brain.planning.config import PlannerConfig
 from brain.planning.frame import CorridorFrame
 from brain.planning.profile import LateralProfile, blend_value, swerve
+from brain.planning.speed import clearance_cap, reachable, travel_time_s
 
 FloatArray = NDArray[np.float64]
 
@@ -99,11 +103,17 @@ def choose(
         return Choice(None, None, None, generated, 0, 0)
     weight = _trapezoid_weights(s)
     base_d = base.at(s)[0]
+    cost = raster.cost(d[index])
+    caps = _speed_caps(frame, config, s, d[index], clearance[index], cost)
+    along = s - s[0]
+    start = max(speed_mps, config.start_speed_mps)
+    speeds = reachable(along, caps, start, np.inf, config.max_accel_mps2, config.max_decel_mps2)
     score = (
-        config.cost_weight * (raster.cost(d[index]) @ weight)
+        config.cost_weight * (cost @ weight)
         + config.offset_weight * (np.abs(d[index]) @ weight)
         + config.change_weight * (np.abs(d[index] - base_d) @ weight)
         + config.slope_weight * ((np.diff(d[index], axis=1) ** 2 / np.diff(s)).sum(axis=1) if len(s) > 1 else 0.0)
+        + config.time_weight * travel_time_s(along, speeds)
     )
     # Candidates the frame cannot vouch for are tried last, not dropped: the corridor is a union
     # of capsules, wider than the frame's band at the outside of corners.
@@ -133,6 +143,33 @@ def choose(
         if cut is not None:
             return Choice(profile, points[:cut], s[:cut], generated, int(full.sum()), gated, partial=True)
     return Choice(None, None, None, generated, int(full.sum()), gated)
+
+
+def _speed_caps(
+    frame: CorridorFrame,
+    config: PlannerConfig,
+    s: FloatArray,
+    d: FloatArray,
+    clearance: FloatArray,
+    cost: FloatArray,
+) -> FloatArray:
+    """The speed caps the planner will put on each candidate (candidates x stations), estimated
+    in the frame: the course's speed slowed by the footprint cost, the lateral acceleration in
+    the curvature of the centre line plus that of the offset (averaged over the curvature
+    window, as the published path's is), and the clearance to hazards."""
+    course = frame.speed_at(s) / (1.0 + config.cost_speed_gain * cost)
+    if len(s) < 3:
+        return course
+    bend = np.gradient(np.unwrap(frame.heading_at(s)), s)
+    kappa = np.abs(bend + np.gradient(np.gradient(d, s, axis=1), s, axis=1))
+    width = max(1, round(config.curvature_window_m / config.point_spacing_m)) | 1
+    kappa = cv2.blur(kappa.astype(np.float32), (width, 1), borderType=cv2.BORDER_REPLICATE).astype(float)
+    with np.errstate(divide="ignore"):
+        turn = np.sqrt(config.max_lateral_accel_mps2 / kappa)
+    near = clearance_cap(
+        clearance, config.clearance_m, config.near_hazard_speed_mps, config.hazard_speed_gain_mps_per_m
+    )
+    return np.minimum.reduce([course, turn, near])
 
 
 def _clear_prefix(gate: PathGate, points: FloatArray, min_length_m: float) -> int | None:

@@ -28,6 +28,9 @@ class PlannerConfig:
     station_behind_m: float = setting(15.0, "how far behind the previous station the vehicle is searched for")
     station_ahead_m: float = setting(60.0, "how far ahead of the previous station the vehicle is searched for")
     max_path_deviation_m: float = setting(2.0, "re-plan when the vehicle is further than this from its path")
+    centre_rounding_m: float = setting(
+        16.0, "the centre line's RDDF corners are rounded over this much path (twice the course's 8 m turn window)"
+    )
     # Candidates (RASCAL: new paths generated from the vehicle's velocity).
     offset_step_m: float = setting(0.5, "lateral spacing of candidate offsets")
     max_offsets: int = setting(41, "most candidate offsets; wide corridors get a coarser step")
@@ -48,6 +51,9 @@ class PlannerConfig:
     offset_weight: float = setting(0.05, "score per metre of path per metre of lateral offset")
     change_weight: float = setting(0.1, "score per metre of path per metre of departure from the current path")
     slope_weight: float = setting(2.0, "score per metre of path per squared lateral slope (gentle swerves)")
+    time_weight: float = setting(
+        5.0, "score per second it takes to drive a candidate under its speed caps (curvature, clearance, cost)"
+    )
     # A* fallback (Kratos: footprint-summed cost grid, 8-connected, binary heap).
     search_stride: int = setting(
         3, "A* lattice step in grid cells (1 = every cell); a channel it misses gets finer ones, down to every cell"
@@ -63,12 +69,15 @@ class PlannerConfig:
     # Speeds.
     slow_speed_mps: float = setting(1.0, "speed commanded when no candidate is left (RASCAL's 1 m/s)")
     start_speed_mps: float = setting(1.0, "speed the profile may command at once from standstill")
+    speed_lead_mps: float = setting(
+        1.0, "on its path, a new profile starts from the last one's speed there, at most this above the vehicle's"
+    )
     max_lateral_accel_mps2: float = setting(2.0, "lateral acceleration limit for curvature speeds")
     max_accel_mps2: float = setting(1.5, "longitudinal acceleration limit")
     max_decel_mps2: float = setting(2.0, "planned braking limit")
     curvature_window_m: float = setting(3.0, "path length curvature is averaged over")
     near_hazard_speed_mps: float = setting(3.0, "speed allowed at the minimum clearance to a hazard")
-    hazard_speed_gain_mps_per_m: float = setting(4.0, "extra speed allowed per metre of further clearance")
+    hazard_speed_gain_mps_per_m: float = setting(6.0, "extra speed allowed per metre of further clearance")
     caution_probability: float = setting(
         0.6, "hazard probability from which a cell slows the vehicle nearby (unknown cells are 0.5: not caution)"
     )

@@ -8,15 +8,14 @@ Fusion hands over a `GridWindow` with two float arrays of its shape: ``hazard_pr
 * the footprint-mean cost: the capped cost averaged over a square as wide as the vehicle's swept
   tube (a box filter, i.e. an integral image), Kratos' footprint-summed cost divided by its area
   so weights do not depend on the resolution;
-* a coarser clearance to "caution" cells (lethal, or hazard probability at or above a threshold)
-  that only the speed profile uses.
+* the same clearance to "caution" cells (lethal, or hazard probability at or above a threshold),
+  which only the speed profile uses: exact too, since it decides how fast the vehicle passes
+  things and a coarser grid's pessimism (half a metre at 0.4 m cells) slows it by metres per second.
 
 Outside the window nothing is known: no lethal cells, no cost.
 """
 
 from __future__ import annotations
-
-import math
 
 import cv2
 import numpy as np
@@ -25,8 +24,6 @@ from numpy.typing import ArrayLike, NDArray
 from brain.grid import GridWindow
 
 FloatArray = NDArray[np.float64]
-
-_CAUTION_POOL = 2  # the caution field is a speed hint: a 2x coarser grid is plenty
 
 
 class HazardField:
@@ -68,7 +65,7 @@ class HazardField:
         )
         caution = self.lethal | (hazard >= caution_probability)
         self.any_caution = bool(caution.any())
-        self._caution_m = _distance_to(_max_pool(caution, _CAUTION_POOL), res * _CAUTION_POOL)
+        self._caution_m = _distance_to(np.pad(caution, 1, constant_values=False), res)
 
     def clearance_bound(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
         """A lower bound on each point's distance to the nearest lethal cell centre.
@@ -78,27 +75,9 @@ class HazardField:
         cell diagonal between them. Beyond the padded ring, the distance to the box of all cell
         centres bounds it.
         """
-        east, north = np.broadcast_arrays(np.asarray(east_m, dtype=float), np.asarray(north_m, dtype=float))
         if not self.any_lethal:
-            return np.full(east.shape, np.inf)
-        w = self.window
-        res = w.resolution_m
-        # Fractional index into the padded field, whose cell (1, 1) is the window's cell (0, 0).
-        u = (east - w.origin_east_m) / res + 0.5
-        v = (north - w.origin_north_m) / res + 0.5
-        col = np.floor(u)
-        row = np.floor(v)
-        fu, fv = u - col, v - row
-        rows, cols = self.clearance_m.shape
-        block = (row >= 0) & (row < rows - 1) & (col >= 0) & (col < cols - 1)  # all four centres in the field
-        flat = np.where(block, row * cols + col, 0).astype(np.intp)
-        field = self.clearance_m.ravel()
-        best = field[flat] - res * np.hypot(fu, fv)
-        np.maximum(best, field[flat + 1] - res * np.hypot(1.0 - fu, fv), out=best)
-        np.maximum(best, field[flat + cols] - res * np.hypot(fu, 1.0 - fv), out=best)
-        np.maximum(best, field[flat + cols + 1] - res * np.hypot(1.0 - fu, 1.0 - fv), out=best)
-        outside = _distance_outside(w, east, north)
-        return np.where(block, np.maximum(best, outside), outside)
+            return np.full(np.broadcast(np.asarray(east_m), np.asarray(north_m)).shape, np.inf)
+        return _bound(self.clearance_m, self.window, east_m, north_m)
 
     def cost_at(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
         """Footprint-mean cost of the cells containing the points (0 outside the window)."""
@@ -108,19 +87,33 @@ class HazardField:
         return np.where(inside, value, 0.0)
 
     def caution_clearance(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
-        """A lower bound on the distance to the nearest caution cell (inf when there is none)."""
-        east, north = np.broadcast_arrays(np.asarray(east_m, dtype=float), np.asarray(north_m, dtype=float))
+        """A lower bound on the distance to the nearest caution cell centre (inf when there is none),
+        as `clearance_bound` is to lethal ones."""
         if not self.any_caution:
-            return np.full(east.shape, np.inf)
-        res = self.window.resolution_m * _CAUTION_POOL
-        row = np.floor((north - self.window.origin_north_m) / res).astype(np.intp) + 1
-        col = np.floor((east - self.window.origin_east_m) / res).astype(np.intp) + 1
-        rows, cols = self._caution_m.shape
-        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        value = self._caution_m[np.clip(row, 0, rows - 1), np.clip(col, 0, cols - 1)]
-        # A pooled cell spans res: its centre can be half a diagonal from the point and from the hazard.
-        near = np.maximum(value - res * math.sqrt(2.0), 0.0)
-        return np.where(inside, near, _distance_outside(self.window, east, north))
+            return np.full(np.broadcast(np.asarray(east_m), np.asarray(north_m)).shape, np.inf)
+        return _bound(self._caution_m, self.window, east_m, north_m)
+
+
+def _bound(field_m: NDArray[np.float32], w: GridWindow, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
+    """`HazardField.clearance_bound` on a distance field padded by one ring of cells around ``w``."""
+    east, north = np.broadcast_arrays(np.asarray(east_m, dtype=float), np.asarray(north_m, dtype=float))
+    res = w.resolution_m
+    # Fractional index into the padded field, whose cell (1, 1) is the window's cell (0, 0).
+    u = (east - w.origin_east_m) / res + 0.5
+    v = (north - w.origin_north_m) / res + 0.5
+    col = np.floor(u)
+    row = np.floor(v)
+    fu, fv = u - col, v - row
+    rows, cols = field_m.shape
+    block = (row >= 0) & (row < rows - 1) & (col >= 0) & (col < cols - 1)  # all four centres in the field
+    flat = np.where(block, row * cols + col, 0).astype(np.intp)
+    field = field_m.ravel()
+    best = field[flat] - res * np.hypot(fu, fv)
+    np.maximum(best, field[flat + 1] - res * np.hypot(1.0 - fu, fv), out=best)
+    np.maximum(best, field[flat + cols] - res * np.hypot(fu, 1.0 - fv), out=best)
+    np.maximum(best, field[flat + cols + 1] - res * np.hypot(1.0 - fu, 1.0 - fv), out=best)
+    outside = _distance_outside(w, east, north)
+    return np.where(block, np.maximum(best, outside), outside)
 
 
 def _distance_outside(window: GridWindow, east: FloatArray, north: FloatArray) -> FloatArray:
@@ -140,17 +133,3 @@ def _distance_to(mask: NDArray[np.bool_], resolution_m: float) -> NDArray[np.flo
         return np.full(mask.shape, np.inf, dtype=np.float32)
     free = np.ascontiguousarray(~mask, dtype=np.uint8)
     return cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(resolution_m)
-
-
-def _max_pool(mask: NDArray[np.bool_], factor: int) -> NDArray[np.bool_]:
-    """Any-True over factor x factor blocks, with a ring of False blocks around (as the fine field)."""
-    rows = -(-mask.shape[0] // factor) * factor
-    cols = -(-mask.shape[1] // factor) * factor
-    grown = np.zeros((rows, cols), dtype=bool)
-    grown[: mask.shape[0], : mask.shape[1]] = mask
-    pooled = np.zeros((rows // factor + 2, cols // factor + 2), dtype=bool)
-    inner = pooled[1:-1, 1:-1]
-    for dr in range(factor):
-        for dc in range(factor):
-            inner |= grown[dr::factor, dc::factor]
-    return pooled

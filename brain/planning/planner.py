@@ -118,11 +118,12 @@ class Planner:
         first_path_id: int = 1,
     ) -> None:
         self.config = config or PlannerConfig()
-        self.frame = CorridorFrame(course_path)
+        self.frame = CorridorFrame(course_path, rounding_m=self.config.centre_rounding_m)
         self.corridor = LocalCorridor(corridor)
         self._next_id = first_path_id
         self._current: _Current | None = None
         self._station: float | None = None
+        self._published: FloatArray | None = None  # the last path's points and speeds (N x 3)
 
     @classmethod
     def for_course(cls, course: Course, config: PlannerConfig | None = None, first_path_id: int = 1) -> Planner:
@@ -133,6 +134,7 @@ class Planner:
         """Forget the current path and the station (e.g. after a long outage or a manual drive)."""
         self._current = None
         self._station = None
+        self._published = None
 
     def plan(
         self,
@@ -258,7 +260,8 @@ class _Cycle:
             )
         kept = self.kept_search_path()
         if kept is not None and current is not None:
-            return self.publish(current.path_id, PlanMode.SEARCH, kept, None, slow=True, **counts)
+            reached = current.reached_goal
+            return self.publish(current.path_id, PlanMode.SEARCH, kept, None, slow=True, reached_goal=reached, **counts)
         found = self.search_path(s_end)
         if found is None:
             return self.stop(**counts)
@@ -281,12 +284,17 @@ class _Cycle:
         return swerve(start, self.s0, 0.0, length, self.s0 + length)
 
     def kept_search_path(self) -> FloatArray | None:
-        """The current searched path from the vehicle on, if it reached its goal and is still clear."""
+        """The current searched path from the vehicle on, while it is still clear: to its end if
+        it reached its goal; if it did not, while at least ``min_partial_m`` of it is left, so
+        the vehicle follows one search decisively instead of a new one every cycle."""
         current = self.planner._current
-        if current is None or current.polyline is None or not current.reached_goal:
+        if current is None or current.polyline is None:
             return None
         trimmed, deviation = _trim(current.polyline, np.array([self.east, self.north]))
-        if deviation > self.cfg.max_path_deviation_m or arc_length(trimmed)[-1] < _MIN_PATH_M:
+        left = arc_length(trimmed)[-1]
+        if deviation > self.cfg.max_path_deviation_m or left < (
+            _MIN_PATH_M if current.reached_goal else self.cfg.min_partial_m
+        ):
             return None
         return trimmed if self.gate.check(trimmed).ok else None
 
@@ -438,8 +446,8 @@ class _Cycle:
         if slow:
             cap = np.minimum(cap, cfg.slow_speed_mps)
         final = 0.0 if slow or stop_at_end else float(cap[-1])
-        start = max(self.speed, cfg.start_speed_mps)
-        speeds = reachable(along, cap, start, final, cfg.max_accel_mps2, cfg.max_decel_mps2)
+        speeds = reachable(along, cap, self.start_speed(), final, cfg.max_accel_mps2, cfg.max_decel_mps2)
+        self.planner._published = np.column_stack([points, speeds])
         path = Path(
             path_id,
             tuple(PathPoint(float(e), float(n), float(v)) for (e, n), v in zip(points, speeds, strict=True)),
@@ -447,10 +455,32 @@ class _Cycle:
         )
         return PlanResult(path, mode, self.s0, self.d0, **figures)
 
+    def start_speed(self) -> float:
+        """The speed a new profile starts from: the vehicle's, or while it is on the last path,
+        that path's speed where it is, up to ``speed_lead_mps`` more. Starting every cycle from
+        the measured speed would hold the target just ahead of a vehicle that lags its
+        acceleration, and the lag would set the acceleration."""
+        cfg = self.cfg
+        start = max(self.speed, cfg.start_speed_mps)
+        last = self.planner._published
+        if last is None or len(last) < 2:
+            return start
+        here = np.array([self.east, self.north])
+        step = np.diff(last[:, :2], axis=0)
+        length2 = np.maximum(np.einsum("ij,ij->i", step, step), 1e-12)
+        t = np.clip(np.einsum("ij,ij->i", here - last[:-1, :2], step) / length2, 0.0, 1.0)
+        gap = np.hypot(*(last[:-1, :2] + t[:, None] * step - here).T)
+        k = int(np.argmin(gap))
+        if gap[k] > cfg.max_path_deviation_m:
+            return start
+        planned = float(last[k, 2] + t[k] * (last[k + 1, 2] - last[k, 2]))
+        return max(start, min(planned, self.speed + cfg.speed_lead_mps))
+
     def stop(self, **figures: int | bool) -> PlanResult:
         """Stand still where the vehicle is: a new one-point path at speed 0, slow mode."""
         path_id = self.planner._new_id()
         self.planner._current = None
+        self.planner._published = None
         path = Path(path_id, (PathPoint(self.east, self.north, 0.0),), True)
         figures.setdefault("reached_goal", False)
         return PlanResult(path, PlanMode.STOP, self.s0, self.d0, **figures)

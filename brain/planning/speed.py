@@ -65,19 +65,26 @@ def reachable(
 ) -> FloatArray:
     """The highest speeds under ``cap_mps`` that start at most at ``start_speed_mps`` (accelerating
     from it within the limit), brake within the limit for every lower cap ahead, and end at no
-    more than ``final_speed_mps``."""
+    more than ``final_speed_mps``. ``cap_mps`` may hold several profiles along its last axis."""
     along = np.asarray(along_m, dtype=float)
-    cap = np.asarray(cap_mps, dtype=float).copy()
-    if len(cap) == 0:
+    cap = np.array(cap_mps, dtype=float)
+    if cap.shape[-1] == 0:
         return cap
     if np.any(np.diff(along) < 0.0):
         raise ValueError("arc lengths must not decrease")
-    cap[0] = min(cap[0], start_speed_mps)
-    cap[-1] = min(cap[-1], final_speed_mps)
+    cap[..., 0] = np.minimum(cap[..., 0], start_speed_mps)
+    cap[..., -1] = np.minimum(cap[..., -1], final_speed_mps)
     squared = np.maximum(cap, 0.0) ** 2
     ramp = 2.0 * max_accel_mps2 * along
-    squared = np.minimum.accumulate(squared - ramp) + ramp
+    squared = np.minimum.accumulate(squared - ramp, axis=-1) + ramp
     back = 2.0 * max_decel_mps2 * (along[-1] - along)
-    squared = (np.minimum.accumulate((squared - back)[::-1]) + back[::-1])[::-1]
+    squared = np.flip(np.minimum.accumulate(np.flip(squared - back, -1), axis=-1), -1) + back
     # The running sums round; the caps themselves are exact, so hold to them.
     return np.minimum(np.sqrt(np.maximum(squared, 0.0)), np.maximum(cap, 0.0))
+
+
+def travel_time_s(along_m: FloatArray, speed_mps: FloatArray, floor_mps: float = 0.5) -> FloatArray:
+    """Time to drive the profile(s) ``speed_mps`` (last axis along ``along_m``), accelerating
+    evenly between points; speeds below ``floor_mps`` count as it (a stop is not forever)."""
+    mean = np.maximum((speed_mps[..., 1:] + speed_mps[..., :-1]) / 2.0, floor_mps)
+    return np.sum(np.diff(np.asarray(along_m, dtype=float)) / mean, axis=-1)

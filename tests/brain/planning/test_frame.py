@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from brain.corridor import Course
 from brain.planning.frame import CorridorFrame
+from brain.planning.speed import curvature
 from tests.brain.planning.scenes import course_through, straight_course
 
 BENT = course_through([(0.0, 0.0), (60.0, 0.0), (100.0, 40.0), (100.0, 120.0), (40.0, 160.0)], half_width_m=6.0)
@@ -141,3 +142,26 @@ def test_a_start_where_the_course_passes_twice_takes_the_pass_along_the_heading(
     inbound = frame.locate_start(east, north, yaw_rad=math.pi)
     assert outbound == pytest.approx(2.0, abs=0.5)
     assert inbound > frame.length_m - 20.0
+
+
+def test_rounded_corners_are_no_sharper_than_the_course_speed_assumes() -> None:
+    """The RDDF's 90-degree corner is a vertex: along it a path would have to slow to 2.5 m/s
+    at 2 m/s^2 (its turn over the planner's 3 m curvature window), while the course's speed
+    profile spreads the turn over 8 m. Rounded over 16 m, the centre line's own curvature never
+    asks for less than that speed, it cuts the corner by under 3 m, and the offsets the frame
+    vouches for stay inside the corridor."""
+    course = course_through([(0.0, 0.0), (50.0, 0.0), (50.0, 50.0)], 6.0)
+    path = course.interpolate()
+    sharp, rounded = CorridorFrame(path), CorridorFrame(path, rounding_m=16.0)
+    s = np.arange(0.0, path.length_m, 1.0)
+    for frame, slower in ((sharp, True), (rounded, False)):
+        centre = np.column_stack(frame.to_enu(s, np.zeros_like(s)))
+        turn_speed = np.sqrt(2.0 / np.maximum(curvature(centre, 3.0), 1e-12))
+        assert bool(np.any(turn_speed < frame.speed_at(s) - 0.5)) is slower
+    centre_e, centre_n = rounded.to_enu(s, np.zeros_like(s))
+    assert 2.0 < np.hypot(centre_e - 50.0, centre_n).min() < 3.0
+    np.testing.assert_allclose(rounded.to_enu([0.0, path.length_m], [0.0, 0.0]), [[0.0, 50.0], [0.0, 50.0]], atol=1e-9)
+    sure = rounded.sure_half_width_at(s)
+    for side in (-1.0, 1.0):
+        east, north = rounded.to_enu(s, side * sure)
+        assert course.corridor.distance_to_edge(east, north).min() >= -1e-6

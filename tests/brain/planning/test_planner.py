@@ -78,8 +78,14 @@ def test_an_obstacle_on_the_path_makes_a_swerve_with_clearance() -> None:
     assert np.all(np.abs(beside[:, 1]) >= 1.0 + CONFIG.clearance_m - 0.2)  # round the 1 m disc
     assert abs(points[-1, 1]) < 1e-6  # and back on the centre line afterwards
     assert points[:, 2].max() > 4.0
-    # Passing close to the obstacle is slower than the open stretch before it.
-    assert points[np.abs(points[:, 0] - 140.0) < 2.0, 2].max() < points[:5, 2].min()
+    # Speeds near the obstacle stay under the clearance cap at each point's distance to its cells ...
+    lethal = grid.lethal_centres()
+    clearance = np.hypot(points[:, None, 0] - lethal[None, :, 0], points[:, None, 1] - lethal[None, :, 1]).min(axis=1)
+    cap = CONFIG.near_hazard_speed_mps + CONFIG.hazard_speed_gain_mps_per_m * (clearance - CONFIG.clearance_m)
+    assert np.all(points[:, 2] <= cap + 1e-6)
+    # ... and the swerve takes the room the corridor has rather than shaving the disc and slowing.
+    assert np.abs(beside[:, 1]).min() > 1.0 + CONFIG.clearance_m + 0.5
+    assert points[np.abs(points[:, 0] - 140.0) < 2.0, 2].min() >= 8.0
 
 
 def chicane(grid: Map) -> Map:
@@ -151,6 +157,14 @@ def test_a_blocked_corridor_stops_short_with_the_nose_clear() -> None:
     nose = 2.1 - 0.4
     assert points[-1, 0] + nose <= 150.0 - CONFIG.clearance_m + 1e-6
     assert points[-1, 0] > 150.0 - CONFIG.clearance_m - nose - 1.0  # as far as it can go
+    # Followed decisively: the same search is kept while more than min_partial_m of it is left,
+    # and searched again only nearer its end.
+    for east in (112.0, 125.0):
+        again = plan(p, grid, Pose(east, 0.0, 0.0, 1.0))
+        assert again.mode is PlanMode.SEARCH and again.path.path_id == result.path.path_id
+        assert path_points(again.path)[0, 0] == pytest.approx(east)
+    near_end = points[-1, 0] - CONFIG.min_partial_m + 1.0
+    assert plan(p, grid, Pose(near_end, 0.0, 0.0, 1.0)).path.path_id != result.path.path_id
 
 
 def test_a_vehicle_already_too_close_to_a_hazard_stands_still() -> None:
@@ -185,6 +199,24 @@ def test_speeds_respect_the_turn_and_the_end_of_the_course() -> None:
     assert np.all(points[:, 2] <= p.frame.speed_at(s) + 1e-9)
     assert points[:, 2].min() < 5.0  # slowed for the corner
     assert points[-1, 1] == pytest.approx(60.0) and points[-1, 2] == 0.0  # the course ends within the horizon
+
+
+def test_a_new_profile_starts_from_the_last_one_where_the_vehicle_is() -> None:
+    """A vehicle lagging its planned acceleration gets the last plan's speed where it is (up to
+    speed_lead_mps more than its own), not its own speed again: the profile keeps accelerating
+    instead of waiting for the vehicle."""
+    p = planner()
+    grid = field()
+    first = path_points(plan(p, grid, Pose(100.0, 0.0, 0.0, 4.0)).path)
+    assert first[0, 2] == pytest.approx(4.0)
+    planned = float(np.interp(106.0, first[:, 0], first[:, 2]))
+    assert planned > 4.4
+    lagging = path_points(plan(p, grid, Pose(106.0, 0.0, 0.0, 4.0)).path)
+    assert lagging[0, 2] == pytest.approx(min(planned, 4.0 + CONFIG.speed_lead_mps))
+    far_behind = path_points(plan(p, grid, Pose(120.0, 0.0, 0.0, 1.0)).path)
+    assert far_behind[0, 2] == pytest.approx(1.0 + CONFIG.speed_lead_mps)
+    off_the_path = path_points(plan(p, grid, Pose(121.0, 3.0, 0.0, 1.0)).path)
+    assert off_the_path[0, 2] == pytest.approx(1.0)
 
 
 def test_path_ids_change_only_on_a_new_plan() -> None:
