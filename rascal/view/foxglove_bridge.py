@@ -70,6 +70,16 @@ def _line(points: list[tuple[float, float]], rgb: tuple[float, float, float], th
     )
 
 
+def _headed(points: list[tuple[float, float]]) -> list[tuple[float, float, float]]:
+    """Each point with the heading of the path through it (central differences, one-sided at the ends)."""
+    last = len(points) - 1
+    headed = []
+    for i, (east, north) in enumerate(points):
+        (e0, n0), (e1, n1) = points[max(i - 1, 0)], points[min(i + 1, last)]
+        headed.append((east, north, math.atan2(n1 - n0, e1 - e0)))
+    return headed
+
+
 class FoxgloveBridge:
     """A foxglove-sdk server on ``host:port`` with the topics above, in its own context."""
 
@@ -121,13 +131,7 @@ class FoxgloveBridge:
             )
             self.tf.log(transform, log_time=now)
         if state.path is not None:
-            points = state.path.points
-            poses = []
-            for i, point in enumerate(points):
-                nxt = points[min(i + 1, len(points) - 1)]
-                prev = points[max(i - 1, 0)]
-                poses.append(_pose(point.east_m, point.north_m, math.atan2(nxt.north_m - prev.north_m,
-                                                                           nxt.east_m - prev.east_m)))  # fmt: skip
+            poses = [_pose(e, n, yaw) for e, n, yaw in _headed([(p.east_m, p.north_m) for p in state.path.points])]
             self.path.log(fm.PosesInFrame(timestamp=_stamp(now), frame_id=FRAME, poses=poses), log_time=now)
         self.obstacles.log(self._obstacle_scene(state, now), log_time=now)
         if state.map is not None and state.map_seq != self._map_seq:

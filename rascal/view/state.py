@@ -50,6 +50,7 @@ TRAIL_POINTS = 4000
 DESCRIPTOR_MAX_AGE_NS = 1_000_000_000  # a sensor silent this long has its obstacles taken off the map
 RECENT_EVENTS = 30
 BORDER_SAMPLES = 12
+MAX_NAMES = 128  # modules or sensors a peer can make us keep: a key holder cycling names stays bounded
 NS = 1_000_000_000
 
 
@@ -165,7 +166,8 @@ class ViewState:
                         "yaw": round(yaw, 3),
                     }
                 )
-        self.obstacles[sensor_name(message.sensor)] = (t_meas_ns, boxes)
+        if self._room(self.obstacles, sensor_name(message.sensor)):
+            self.obstacles[sensor_name(message.sensor)] = (t_meas_ns, boxes)
 
     def _lanes(self, message: LaneBorders, t_meas_ns: int) -> None:
         pose = self._pose_at(t_meas_ns)
@@ -185,10 +187,13 @@ class ViewState:
                 if _finite(east, north):
                     points.append([round(east, 2), round(north, 2)])
             lines.append(points)
-        self.lanes[sensor_name(message.sensor)] = (t_meas_ns, lines)
+        if self._room(self.lanes, sensor_name(message.sensor)):
+            self.lanes[sensor_name(message.sensor)] = (t_meas_ns, lines)
 
     def _status(self, status: ModuleStatus, _t_meas_ns: int) -> None:
         known = self.modules.get(status.module)
+        if known is None and not self._room(self.modules, status.module):
+            return
         reports = known.restart_reports if known else 0
         self.modules[status.module] = _Module(status, self.now_ns, reports)
 
@@ -210,6 +215,12 @@ class ViewState:
         candidates = [j for j in (i - 1, i) if 0 <= j < len(self.poses)]
         _, east, north, yaw = self.poses[min(candidates, key=lambda j: abs(self._pose_times[j] - t_ns))]
         return east, north, yaw
+
+    def _room(self, books: dict[str, Any], name: str) -> bool:
+        if name in books or len(books) < MAX_NAMES:
+            return True
+        self._bad("too_many_names")
+        return False
 
     def _bad(self, reason: str) -> None:
         self.bad[reason] = self.bad.get(reason, 0) + 1

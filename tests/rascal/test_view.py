@@ -43,7 +43,7 @@ from rascal.bus import Bus
 from rascal.clock import WallClock
 from rascal.recording import RecordingWriter
 from rascal.view.server import FrameHub, ViewServer
-from rascal.view.state import ViewState
+from rascal.view.state import MAX_NAMES, ViewState
 from tests.conftest import ROOT
 
 T0 = 1_700_000_000_000_000_000
@@ -122,6 +122,9 @@ def test_bad_input_is_counted_not_drawn() -> None:
     state.handle(channels.OBSTACLES_ESVS, huge, T0 + MS, T0 + MS)
     assert state.map_view() is None and state.scene_view()["vehicle"]["e"] == 1.0
     assert state.scene_view()["obstacles"] == {"esvs": []}
+    for i in range(MAX_NAMES + 5):  # a key holder inventing module names cannot grow the books without bound
+        state.handle(channels.MODULE_STATUS, status(f"m{i}"), T0, T0 + 2 * MS)
+    assert len(state.modules) == MAX_NAMES and state.bad.pop("too_many_names") == 5
     assert state.bad == {"obstacles_before_any_pose": 1, "vehicle_state_not_finite": 1, "map_snapshot_undecodable": 2}
     json.dumps(state.scene_view(), allow_nan=False)
     json.dumps(state.health_view({}), allow_nan=False)
