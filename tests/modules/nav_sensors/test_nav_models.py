@@ -163,6 +163,15 @@ def test_gps_outage_publishes_nothing_in_its_window_and_resumes_after() -> None:
         assert (fix is None) == (2.0 <= t_s < 4.0), t_s
 
 
+def test_gps_outage_placed_on_the_course_follows_the_progress_not_the_clock() -> None:
+    outage = SensorFault(("gps",), FaultKind.OUTAGE, start_s=0.0, end_s=1e12, from_m=10.0, to_m=20.0)
+    gps = GpsModel(GpsParams(), ORIGIN, rng(), faults=(outage,))
+    for t_s in np.arange(0.0, 6.0, 0.1):
+        progress = 5.0 * t_s
+        fix = gps.measure(SimTruth(progress, 0.0, 0.0, 5.0, 0.0, 0.0, progress, 0), round(t_s * 1e9), t_s)
+        assert (fix is None) == (10.0 <= progress < 20.0), progress
+
+
 def test_gps_jump_offsets_the_fix_by_its_magnitude_only_while_active() -> None:
     jump = SensorFault(("gps",), FaultKind.JUMP, start_s=1.0, end_s=2.0, magnitude=7.5)
     gps = GpsModel(IDEAL_GPS, ORIGIN, rng(), faults=(jump,))
