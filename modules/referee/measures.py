@@ -19,7 +19,7 @@ from modules.sim.scenario import Scenario
 from modules.sim.vehicle import VehicleParams
 from protocol.messages import Path, SimTruth
 
-FINISH_DISTANCE_M = 3.0  # the planner stops the rear axle short of the last waypoint; rascal run agrees
+FINISH_DISTANCE_M = 5.0  # control stops 2-3 m short of the last waypoint; rascal run agrees (rascal/run.py)
 CLEARANCE_REACH_M = 15.0  # obstacles farther from the vehicle's centre cannot set the minimum
 
 
