@@ -45,6 +45,7 @@ DRAWN_CHANNELS = (
     *OBSTACLE_CHANNELS,
 )
 POSE_HISTORY = 256  # ~2.5 s of 100 Hz navigation: enough to place any descriptor still drawn
+POSE_MATCH_NS = 300_000_000  # a descriptor is placed only with a pose this close to its measurement
 TRAIL_SPACING_M = 0.5
 TRAIL_POINTS = 4000
 DESCRIPTOR_MAX_AGE_NS = 1_000_000_000  # a sensor silent this long has its obstacles taken off the map
@@ -150,7 +151,7 @@ class ViewState:
     def _obstacles(self, message: ObstacleList, t_meas_ns: int) -> None:
         pose = self._pose_at(t_meas_ns) if message.frame == Frame.VEHICLE else (0.0, 0.0, 0.0)
         if pose is None:
-            self._bad("obstacles_before_any_pose")
+            self._bad("obstacles_without_a_pose_at_their_time")
             return
         boxes = []
         for obstacle in message.obstacles:
@@ -172,7 +173,7 @@ class ViewState:
     def _lanes(self, message: LaneBorders, t_meas_ns: int) -> None:
         pose = self._pose_at(t_meas_ns)
         if pose is None:
-            self._bad("lane_borders_before_any_pose")
+            self._bad("lane_borders_without_a_pose_at_their_time")
             return
         lines = []
         for border in message.borders:
@@ -213,8 +214,8 @@ class ViewState:
             return None
         i = bisect.bisect_left(self._pose_times, t_ns)
         candidates = [j for j in (i - 1, i) if 0 <= j < len(self.poses)]
-        _, east, north, yaw = self.poses[min(candidates, key=lambda j: abs(self._pose_times[j] - t_ns))]
-        return east, north, yaw
+        t_pose, east, north, yaw = self.poses[min(candidates, key=lambda j: abs(self._pose_times[j] - t_ns))]
+        return (east, north, yaw) if abs(t_pose - t_ns) <= POSE_MATCH_NS else None
 
     def _room(self, books: dict[str, Any], name: str) -> bool:
         if name in books or len(books) < MAX_NAMES:

@@ -125,7 +125,10 @@ def test_bad_input_is_counted_not_drawn() -> None:
     for i in range(MAX_NAMES + 5):  # a key holder inventing module names cannot grow the books without bound
         state.handle(channels.MODULE_STATUS, status(f"m{i}"), T0, T0 + 2 * MS)
     assert len(state.modules) == MAX_NAMES and state.bad.pop("too_many_names") == 5
-    assert state.bad == {"obstacles_before_any_pose": 1, "vehicle_state_not_finite": 1, "map_snapshot_undecodable": 2}
+    late = ObstacleList(int(Sensor.ESVS), int(Frame.VEHICLE), (Obstacle(1, 1, 1, 1, 1, 0, 1, 1),))
+    state.handle(channels.OBSTACLES_ESVS, late, T0 + 2000 * MS, T0 + 2000 * MS)  # navigation silent since T0 + 1 ms
+    assert state.bad.pop("obstacles_without_a_pose_at_their_time") == 2
+    assert state.bad == {"vehicle_state_not_finite": 1, "map_snapshot_undecodable": 2}
     json.dumps(state.scene_view(), allow_nan=False)
     json.dumps(state.health_view({}), allow_nan=False)
 
@@ -213,6 +216,30 @@ def test_the_server_streams_events_and_serves_the_page() -> None:
             urllib.request.urlopen(server.url + "../../etc/passwd", timeout=5)
         assert missing.value.code == 404
     finally:
+        server.close()
+
+
+def test_a_client_that_stops_reading_holds_up_neither_the_publisher_nor_other_clients() -> None:
+    hub = FrameHub()
+    server = ViewServer(hub, "127.0.0.1", 0)
+    server.start()
+    host, port = server.httpd.server_address[:2]
+    stuck = socket.create_connection((host, port), timeout=5)
+    stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    try:
+        stuck.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")  # ...and never reads a byte
+        big = "x" * 100_000
+        for i in range(300):  # 30 MB offered: far beyond any socket buffer
+            hub.publish("map", {"seq": i, "cells": big})
+            if i % 50 == 0:
+                time.sleep(0.02)  # let the stuck client's thread fill its socket
+        got: list[tuple[str, Any]] = []
+        reader = threading.Thread(target=lambda: got.extend(read_events(server.url, 1)))
+        reader.start()
+        reader.join(timeout=10)
+        assert [(name, value["seq"]) for name, value in got] == [("map", 299)]  # the newest, nothing queued
+    finally:
+        stuck.close()
         server.close()
 
 

@@ -1,4 +1,5 @@
-// rascal view: draws the latest state the server pushed (Server-Sent Events) on requestAnimationFrame.
+// rascal view: draws the latest state the server pushed (Server-Sent Events) on requestAnimationFrame,
+// and only when something new came.
 // Events only replace "latest" values; drawing happens once per animation frame, so however fast
 // updates arrive the page never builds a backlog. window.rascalView exposes what tests check.
 "use strict";
@@ -13,10 +14,13 @@ const latest = { course: null, scene: null, trail: [], health: null };
 const stats = {
   connected: false, events: 0, frames: 0,
   mapReceived: 0, mapDecoded: 0, mapRendered: 0, mapSkippedByServer: 0,
-  mapLatestSeq: 0, mapRenderedSeq: 0, backlog: 0, maxBacklog: 0, lastRenderLagMs: null, maxRenderLagMs: 0, lastDecodeMs: null,
-  vehiclePx: null, vehicleWorld: null, modules: [], follow: false,
+  mapLatestSeq: 0, mapRenderedSeq: 0, mapRenderedIndex: 0, backlog: 0, maxBacklog: 0, lastRenderLagMs: null, maxRenderLagMs: 0, lastDecodeMs: null,
+  vehiclePx: null, vehicleWorld: null, modules: [], follow: false, errors: [],
 };
 window.rascalView = stats;
+function noteError(text) { if (stats.errors.length < 20) stats.errors.push(String(text)); }
+window.addEventListener("error", (e) => noteError(e.message));
+window.addEventListener("unhandledrejection", (e) => noteError(e.reason));
 
 // -- the map: inflate (zlib = "deflate" for DecompressionStream) into an off-screen bitmap ----------
 const LUT = new Uint32Array(256); // probability x 255 -> RGBA packed as the platform's bytes
@@ -26,6 +30,7 @@ for (let v = 0; v < 256; v++) {
   if (p > 0.55) LUT_BYTES.set([235, 50, 40, Math.round(255 * Math.min(1, (p - 0.55) / 0.35))], v * 4);
   else if (p < 0.45) LUT_BYTES.set([70, 170, 90, Math.round(90 * (0.45 - p) / 0.45)], v * 4);
 }
+let dirty = true; // something new to draw: frames with nothing new cost nothing
 let mapImage = null; // {canvas, seq, received, origin_e, origin_n, res, rows, cols}
 let mapDecoding = false;
 let mapPending = null; // only the newest undecoded snapshot is kept
@@ -55,10 +60,11 @@ async function decodeMaps() {
       bitmap.width = snap.cols; bitmap.height = snap.rows;
       bitmap.getContext("2d").putImageData(image, 0, 0);
       mapImage = { ...snap, canvas: bitmap, zlib_b64: null };
+      dirty = true;
       stats.mapDecoded++;
       stats.lastDecodeMs = Math.round(performance.now() - started);
     } catch (err) {
-      console.error("map snapshot", err);
+      noteError(`map snapshot ${snap.seq}: ${err}`);
     }
   }
   mapDecoding = false;
@@ -69,6 +75,7 @@ function onMap(snap) {
   if (stats.mapLatestSeq && snap.seq > stats.mapLatestSeq + 1) stats.mapSkippedByServer += snap.seq - stats.mapLatestSeq - 1;
   stats.mapLatestSeq = snap.seq;
   snap.received = performance.now();
+  snap.index = stats.mapReceived; // the backlog counts maps received since the one drawn
   mapPending = snap;
   if (!mapDecoding) decodeMaps();
 }
@@ -78,7 +85,7 @@ function connect() {
   const source = new EventSource("events");
   source.onopen = () => { stats.connected = true; document.getElementById("conn").textContent = "live"; };
   source.onerror = () => { stats.connected = false; document.getElementById("conn").textContent = "reconnecting…"; };
-  const on = (name, fn) => source.addEventListener(name, (e) => { stats.events++; fn(JSON.parse(e.data)); });
+  const on = (name, fn) => source.addEventListener(name, (e) => { stats.events++; dirty = true; fn(JSON.parse(e.data)); });
   on("course", (c) => { latest.course = c; });
   on("scene", (s) => { latest.scene = s; });
   on("trail", (t) => { latest.trail = t; });
@@ -135,6 +142,7 @@ function drawMap() {
   if (m.seq !== stats.mapRenderedSeq) {
     stats.mapRendered++;
     stats.mapRenderedSeq = m.seq;
+    stats.mapRenderedIndex = m.index;
     stats.lastRenderLagMs = Math.round(performance.now() - m.received);
     stats.maxRenderLagMs = Math.max(stats.maxRenderLagMs, stats.lastRenderLagMs);
   }
@@ -163,10 +171,14 @@ function drawVehicle(v) {
 }
 
 function render() {
+  requestAnimationFrame(render);
   const rect = canvas.getBoundingClientRect();
   if (canvas.width !== Math.round(rect.width) || canvas.height !== Math.round(rect.height)) {
     canvas.width = Math.round(rect.width); canvas.height = Math.round(rect.height);
+    dirty = true;
   }
+  if (!dirty) return;
+  dirty = false;
   fitView();
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   const scene = latest.scene;
@@ -182,15 +194,14 @@ function render() {
       ? `t ${scene.t_s.toFixed(1)} s · ${scene.vehicle.speed.toFixed(1)} m/s` : `t ${scene.t_s.toFixed(1)} s · no vehicle state`;
   }
   stats.frames++;
-  stats.backlog = stats.mapLatestSeq - stats.mapRenderedSeq;
-  stats.maxBacklog = Math.max(stats.maxBacklog, stats.backlog);
+  stats.backlog = stats.mapReceived - stats.mapRenderedIndex;
+  if (stats.mapRendered) stats.maxBacklog = Math.max(stats.maxBacklog, stats.backlog);
   if (stats.frames % 15 === 0) {
     document.getElementById("viewstats").textContent =
       `maps received ${stats.mapReceived}, rendered ${stats.mapRendered}, skipped by server ${stats.mapSkippedByServer}, ` +
       `backlog ${stats.backlog} (max ${stats.maxBacklog}), last render lag ${stats.lastRenderLagMs} ms, decode ${stats.lastDecodeMs} ms`;
     document.getElementById("status").textContent = JSON.stringify(stats);
   }
-  requestAnimationFrame(render);
 }
 
 // -- the health panel ---------------------------------------------------------------------------
@@ -232,6 +243,7 @@ function legend() {
 
 function toggleFollow() {
   stats.follow = !stats.follow;
+  dirty = true;
   document.getElementById("follow").textContent = stats.follow ? "fit course" : "follow";
 }
 document.getElementById("follow").onclick = toggleFollow;
