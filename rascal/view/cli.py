@@ -31,6 +31,7 @@ from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployme
 from rascal.logread import END_METADATA, Datagram, RecordingError, Scan, iter_datagrams
 from rascal.module import Runtime
 from rascal.view.module import HEALTH_PERIOD_S, TRAIL_PERIOD_S, Publisher, Viewer, ViewerConfig, course_of, open_outputs
+from rascal.view.server import ViewServerError
 from rascal.view.state import DRAWN_CHANNELS, ViewState
 
 DRAWN_TYPE_IDS = {channel: info_for_class(channels.CHANNEL_TYPES[channel]).type_id for channel in DRAWN_CHANNELS}
@@ -79,7 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         keyring = load_keyring(deployment.key_file) if deployment.key_file else default_keyring()
         clock = SharedClock()
         bus = Bus.open(bus_url, source_id=random.randint(*TOOL_SOURCE_IDS), clock=clock, keyring=keyring)
-    except (RecordingError, KeyFileError, UrlError, OSError, ValueError) as exc:
+    except (RecordingError, KeyFileError, UrlError, OSError, ValueError, ViewServerError) as exc:
         print(f"rascal view: {exc}", file=sys.stderr)
         return 2
     runtime = Runtime(bus, clock)

@@ -12,7 +12,7 @@ from protocol.codec import Envelope, Opened
 from rascal.config import setting
 from rascal.deployment import Deployment, ModuleSpec
 from rascal.module import Module, Runtime
-from rascal.view.server import FrameHub, ViewServer
+from rascal.view.server import FrameHub, ViewServer, ViewServerError
 from rascal.view.state import DRAWN_CHANNELS, ViewState
 
 VIEWER_SOURCE_ID = 7
@@ -67,9 +67,13 @@ def open_outputs(config: ViewerConfig) -> tuple[ViewServer, Any]:
     server.start()
     foxglove = None
     if config.foxglove:
-        from rascal.view.foxglove_bridge import FoxgloveBridge
+        try:
+            from rascal.view.foxglove_bridge import FoxgloveBridge
 
-        foxglove = FoxgloveBridge(config.host, config.foxglove_port)
+            foxglove = FoxgloveBridge(config.host, config.foxglove_port)
+        except Exception as exc:  # ImportError, or whatever foxglove-sdk raises for a port it cannot bind
+            server.close()
+            raise ViewServerError(f"cannot serve Foxglove on {config.host}:{config.foxglove_port}: {exc}") from None
     return server, foxglove
 
 
@@ -91,7 +95,10 @@ class Viewer(Module):
         self.foxglove: Any = None
 
     def on_start(self) -> None:
-        self.server, self.foxglove = open_outputs(self.config)
+        try:
+            self.server, self.foxglove = open_outputs(self.config)
+        except ViewServerError as exc:
+            raise SystemExit(f"viewer: {exc}") from None
         self.publisher = Publisher(self.state, self.server.hub, self.foxglove)
         print(f"viewer: {self.server.url}" + (f" and Foxglove on {self.foxglove.url}" if self.foxglove else ""),
               flush=True)  # fmt: skip

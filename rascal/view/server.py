@@ -20,6 +20,10 @@ STATIC_FILES = {"/": ("index.html", "text/html; charset=utf-8"), "/view.js": ("v
 _dumps = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
 
 
+class ViewServerError(RuntimeError):
+    """The view cannot be served where asked (the port is taken, the address is not ours...)."""
+
+
 class FrameHub:
     """Latest payload and version of each topic, and a condition the client threads wait on."""
 
@@ -71,7 +75,10 @@ class ViewServer:
     def __init__(self, hub: FrameHub, host: str = "127.0.0.1", port: int = 8090) -> None:
         self.hub = hub
         handler = type("Handler", (_Handler,), {"hub": hub})
-        self.httpd = ThreadingHTTPServer((host, port), handler)
+        try:
+            self.httpd = ThreadingHTTPServer((host, port), handler)
+        except OSError as exc:
+            raise ViewServerError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}") from None
         self.httpd.daemon_threads = True
         self._thread = threading.Thread(target=self.httpd.serve_forever, name="view-http", daemon=True)
 

@@ -365,3 +365,16 @@ def test_rascal_view_replays_a_recording(tmp_path: Path, key_file: Path) -> None
         [sys.executable, "-m", "rascal.cli", "view", str(bad), "--port", "0"], cwd=ROOT, capture_output=True, text=True
     )
     assert result.returncode == 2 and "bad.mcap" in result.stderr
+
+
+def test_a_port_already_taken_is_a_clear_error(tmp_path: Path, key_file: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = recording(tmp_path / "run.mcap", key_file, [(channels.VEHICLE_STATE, vehicle(0.0, 0.0, 0.0))], {})
+        for args in ([], [str(path)]):  # live, and replaying
+            command = [sys.executable, "-m", "rascal.cli", "view", *args, "--port", str(port), "--duration", "5"]
+            result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+            assert result.returncode in (1, 2) and f"cannot serve the view on 127.0.0.1:{port}" in result.stderr
+            assert "Traceback" not in result.stderr
