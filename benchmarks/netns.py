@@ -15,6 +15,7 @@ import secrets
 import shutil
 import signal
 import subprocess
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
 TERM_GRACE_S = 5.0
 CLONE_NEWNET = 0x40000000
 HOST_LINK = "eth0"  # every host's one interface (names are per namespace)
+LINK_UP_TIMEOUT_S = 10.0
 
 
 class NamespaceError(RuntimeError):
@@ -69,7 +71,10 @@ class BridgedHosts:
         _ip("-n", self.switch, "link", "set", _port(host), "down")
 
     def reconnect(self, host: str) -> None:
+        """Plug ``host`` back in; returns once both ends pass traffic again."""
         _ip("-n", self.switch, "link", "set", _port(host), "up")
+        _wait_up(self.switch, _port(host))
+        _wait_up(self.namespaces[host], HOST_LINK)
 
     @contextmanager
     def entered(self, host: str) -> Iterator[None]:
@@ -110,6 +115,9 @@ def bridged_hosts(names: Sequence[str], subnet: str = "10.77.0") -> Iterator[Bri
             _ip("-n", namespace, "addr", "add", f"{hosts.addresses[name]}/24", "dev", HOST_LINK)
             _ip("-n", namespace, "link", "set", HOST_LINK, "up")
             _ip("-n", namespace, "link", "set", "lo", "up")
+        for name, namespace in hosts.namespaces.items():
+            _wait_up(switch, _port(name))
+            _wait_up(namespace, HOST_LINK)
         yield hosts
 
 
@@ -140,6 +148,27 @@ def raise_rmem_max(value: int) -> str:
 
 def _port(host: str) -> str:
     return f"p-{host}"[:15]  # the switch's end of host's link (IFNAMSIZ)
+
+
+def _wait_up(namespace: str, device: str) -> None:
+    """Until ``device`` is operationally up: the kernel activates a link that got its carrier
+    (its queue starts passing packets) in a work item, later still on a loaded machine."""
+    deadline = time.monotonic() + LINK_UP_TIMEOUT_S
+    while True:
+        shown = subprocess.run(
+            ["ip", "-n", namespace, "-o", "link", "show", "dev", device],
+            capture_output=True,
+            text=True,
+            timeout=IP_TIMEOUT_S,
+            check=False,
+        )
+        if " state UP " in shown.stdout:
+            return
+        if time.monotonic() > deadline:
+            raise NamespaceError(
+                f"{device} in {namespace} not up after {LINK_UP_TIMEOUT_S:.0f} s: {shown.stdout.strip()}"
+            )
+        time.sleep(0.05)
 
 
 def _delete_namespace(name: str) -> None:

