@@ -39,7 +39,6 @@ from tests.conftest import ROOT
 from tests.integration.listener import Listener
 
 NS = 1e9
-STOPPED_MPS = 0.3
 LIDARS = {"lidar_h_left": 21, "lidar_h_right": 22, "lidar_v_left": 23, "lidar_v_right": 24}
 LISTENER_SOURCE_ID = 914
 
@@ -103,7 +102,7 @@ def write_deployment(
     tmp_path: Path,
     bus_url: str,
     course: str,
-    scenario: str,
+    scenario_toml: str,
     overrides: dict[str, dict[str, Any] | None] | None = None,
     extra: str = "",
 ) -> Path:
@@ -111,7 +110,7 @@ def write_deployment(
     deployment of MODULES changed by ``overrides`` (a module's keys replace, its "set" merges;
     None drops the module), with ``extra`` TOML appended (e.g. link faults)."""
     (tmp_path / "course.rddf").write_text(course)
-    (tmp_path / "scenario.toml").write_text(scenario)
+    (tmp_path / "scenario.toml").write_text(scenario_toml)
     ring = f"rascal-test-{os.getpid()}-{tmp_path.name[-8:]}"
     lines = [
         "[deployment]",
