@@ -178,9 +178,10 @@ def test_a_slow_client_gets_only_the_latest_version_of_each_topic() -> None:
     assert done == [None]
 
 
-def read_events(url: str, wanted: int, timeout_s: float = 10.0) -> list[tuple[str, Any]]:
-    events: list[tuple[str, Any]] = []
-    with urllib.request.urlopen(url + "events", timeout=timeout_s) as stream:
+def read_events(url: str, wanted: int, events: list[tuple[str, Any]] | None = None) -> list[tuple[str, Any]]:
+    """The first ``wanted`` server-sent events, appended to ``events`` as they come."""
+    events = [] if events is None else events
+    with urllib.request.urlopen(url + "events", timeout=10) as stream:
         name = ""
         for raw in stream:
             line = raw.decode().rstrip("\n")
@@ -200,10 +201,12 @@ def test_the_server_streams_events_and_serves_the_page() -> None:
     try:
         hub.publish("course", {"waypoints": []})
         hub.publish("scene", {"t": 1})
-        reader = threading.Thread(target=lambda: got.extend(read_events(server.url, 3)))
         got: list[tuple[str, Any]] = []
+        reader = threading.Thread(target=read_events, args=(server.url, 3, got))
         reader.start()
-        time.sleep(0.3)
+        deadline = time.monotonic() + 10
+        while len(got) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)  # the client has what there was: now something new
         hub.publish("scene", {"t": 2})
         reader.join(timeout=10)
         assert got == [("course", {"waypoints": []}), ("scene", {"t": 1}), ("scene", {"t": 2})]
