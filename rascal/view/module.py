@@ -78,7 +78,13 @@ def open_outputs(config: ViewerConfig) -> tuple[ViewServer, Any]:
 
 
 def course_of(config: ViewerConfig) -> Course | None:
-    return load_course(config.course, config.origin) if config.course else None
+    """The course to draw, or None; a file that cannot be read is one clear line (SystemExit)."""
+    if not config.course:
+        return None
+    try:
+        return load_course(config.course, config.origin)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"viewer: course {config.course}: {exc}") from None
 
 
 class Viewer(Module):

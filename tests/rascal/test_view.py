@@ -381,3 +381,12 @@ def test_a_port_already_taken_is_a_clear_error(tmp_path: Path, key_file: Path) -
             result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
             assert result.returncode in (1, 2) and f"cannot serve the view on 127.0.0.1:{port}" in result.stderr
             assert "Traceback" not in result.stderr
+
+
+def test_a_course_that_cannot_be_read_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "bad.rddf").write_text("not a route\n")
+    for course in (tmp_path / "missing.rddf", tmp_path / "bad.rddf"):
+        command = [sys.executable, "-m", "rascal.cli", "view", "--course", str(course), "--duration", "5"]
+        result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert result.returncode == 1 and f"viewer: course {course}" in result.stderr
+        assert "Traceback" not in result.stderr
