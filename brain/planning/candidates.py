@@ -3,7 +3,8 @@
 When the current path meets a hazard, candidates leave it as lateral offsets in the corridor
 frame: a quintic blend to an offset, a level stretch past the conflict, and a blend of the same
 length back to the centre line. Blend lengths are seconds of travel at the current speed, so a
-fast vehicle swerves gently and a slow one sharply. A late variant keeps the current path until
+fast vehicle swerves gently and a slow one sharply (and also at the course's speed there, so a
+vehicle slowed below it has swerves gentle enough to speed up through). A late variant keeps the current path until
 just before the conflict. Everything is evaluated at once as (candidates x stations) arrays at
 the published point spacing, against a raster of the hazard clearance across the corridor at
 each station: candidates through a lethal cell there are dropped, the rest are scored
@@ -237,8 +238,14 @@ def _parameters(
     step = max(config.offset_step_m, 2.0 * reach / max(config.max_offsets - 1, 1))
     count = math.floor(reach / step + 1e-9)
     offsets = step * np.arange(-count, count + 1)
+    # Seconds of travel at the current speed, and at the course's speed here: a vehicle slowed
+    # below it also gets swerves gentle enough to speed up through.
+    course_mps = max(float(frame.speed_at(s[0])), speed_mps)
+    times = np.asarray(config.transition_times_s)
     lengths = np.unique(
-        np.clip(np.asarray(config.transition_times_s) * speed_mps, config.min_transition_m, config.max_transition_m)
+        np.clip(
+            np.concatenate([times * speed_mps, times * course_mps]), config.min_transition_m, config.max_transition_m
+        )
     )
     start = float(s[0])
     shapes = []  # (begin, length, return) of each swerve shape; every shape goes to every offset

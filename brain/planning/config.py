@@ -52,7 +52,7 @@ class PlannerConfig:
     change_weight: float = setting(0.1, "score per metre of path per metre of departure from the current path")
     slope_weight: float = setting(2.0, "score per metre of path per squared lateral slope (gentle swerves)")
     time_weight: float = setting(
-        5.0, "score per second it takes to drive a candidate under its speed caps (curvature, clearance, cost)"
+        10.0, "score per second it takes to drive a candidate under its speed caps (curvature, clearance, cost)"
     )
     # A* fallback (Kratos: footprint-summed cost grid, 8-connected, binary heap).
     search_stride: int = setting(

@@ -76,7 +76,7 @@ def test_an_obstacle_on_the_path_makes_a_swerve_with_clearance() -> None:
     assert_safe(points, grid)
     beside = points[np.abs(points[:, 0] - 140.0) < 1.0]
     assert np.all(np.abs(beside[:, 1]) >= 1.0 + CONFIG.clearance_m - 0.2)  # round the 1 m disc
-    assert abs(points[-1, 1]) < 1e-6  # and back on the centre line afterwards
+    assert abs(points[-1, 1]) < 0.01  # and back on the centre line afterwards
     assert points[:, 2].max() > 4.0
     # Speeds near the obstacle stay under the clearance cap at each point's distance to its cells ...
     lethal = grid.lethal_centres()
