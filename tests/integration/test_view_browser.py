@@ -1,8 +1,9 @@
 """rascal run --view in a real browser: headless Chromium (Debian's) loads the live page during a
 short drive by real processes over the signed loopback bus, and the test reads the page over the
-DevTools protocol: the vehicle moves on the canvas, the health panel lists every module, and the
-page keeps up with 10 Hz map snapshots (it goes on drawing maps newer than any it had, never
-working through a queue of old ones). A screenshot is kept in the test's directory."""
+DevTools protocol: the vehicle moves on the canvas, the health panel lists every module (and a
+restart when one is killed), and the page keeps up with 10 Hz map snapshots (it goes on drawing
+maps newer than any it had, never working through a queue of old ones). A screenshot is kept
+in the test's directory."""
 
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ import pytest
 
 from tests.conftest import ROOT
 from tests.integration.test_closed_loop import RDDF, SCENARIO
+from tests.integration.test_supervisor import pids_of
 from tests.rascal.test_view import free_port
 
 websocket = pytest.importorskip("websocket", reason="websocket-client (a dev dependency) is not installed")
@@ -228,6 +230,20 @@ def test_the_live_view_in_chromium_follows_a_drive(
             return set(rows) if set(rows) >= EXPECTED_MODULES else set()
 
         rows = wait_for("the health panel lists every module", panel, 30.0, run, run_log)
+        # A restart, as the supervisor reports it: the health monitor is killed (the drive does
+        # not need it) and its row counts the restart, the events list says why.
+        (health,) = pids_of("health", bus_url)
+        os.kill(health, signal.SIGKILL)
+
+        def restart_shown() -> bool:
+            restarts = devtools.evaluate(
+                "Object.fromEntries([...document.querySelectorAll('#modules tbody tr')]"
+                ".map(r => [r.dataset.module, r.cells[6].textContent]))"
+            )
+            events = devtools.evaluate("document.getElementById('events').textContent")
+            return restarts.get("health") == "1" and "health exited with signal SIGKILL" in events
+
+        wait_for("the health panel shows the restart", restart_shown, 60.0, run, run_log)
         # Keeping up: once 30 maps have come, the page goes on to draw one that arrived after
         # that moment, however slowly the loaded machine lets it draw. A page that queued maps
         # and could not keep up would still be drawing old ones (latest-only is why it can't).
