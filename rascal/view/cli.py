@@ -95,7 +95,7 @@ def replay(path: Path, config: ViewerConfig, speed: float, duration_s: float | N
     datagrams = iter_datagrams(path, scan=scan)
     first = next(datagrams, None)  # a file that is no recording fails here, before anything is served
     server, foxglove = open_outputs(config)
-    publisher = Publisher(state, server.hub, foxglove)
+    publisher = Publisher(state, server.hub, foxglove, source=f"replaying {path.name}")
     print(f"rascal view: replaying {path} on {server.url}" + (f", Foxglove on {foxglove.url}" if foxglove else ""),
           flush=True)  # fmt: skip
     stop = _stop_flag()

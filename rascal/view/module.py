@@ -34,12 +34,13 @@ class ViewerConfig:
 class Publisher:
     """Turns a ViewState into the page's topics (and Foxglove's), skipping what did not change."""
 
-    def __init__(self, state: ViewState, hub: FrameHub, foxglove: Any = None) -> None:
+    def __init__(self, state: ViewState, hub: FrameHub, foxglove: Any = None, source: str = "live") -> None:
+        """``source`` is what the page says it shows: "live", or the recording's name."""
         self.state = state
         self.hub = hub
         self.foxglove = foxglove
         self._map_seq = 0
-        hub.publish("course", state.course_view())
+        hub.publish("course", {**state.course_view(), "source": source})
         if foxglove is not None:
             foxglove.course(state)
 

@@ -321,6 +321,7 @@ def test_the_viewer_process_shows_the_live_bus(bus_url: str, key_file: Path, tmp
         assert boxes[0]["e"] == 17.5  # 8 m ahead of the vehicle at 9.5 m
         assert state["scene"]["path"] == [[9.5, 0.0], [14.5, 0.0]]
         assert {m["name"] for m in state["health"]["modules"]} >= {"sim", "viewer"}
+        assert state["course"] == {"waypoints": [], "half_widths_m": [], "source": "live"}
         state = fetch_state(url, lambda s: sum(s["health"]["rejected"].values()) >= 1, 5.0, child, log)
         assert state["health"]["rates_hz"]["VEHICLE_STATE"] > 0
     finally:
@@ -359,6 +360,7 @@ def test_rascal_view_replays_a_recording(tmp_path: Path, key_file: Path) -> None
         assert [m["name"] for m in state["health"]["modules"]] == ["brain"]
         assert len(state["trail"]) == 30
         assert state["course"]["waypoints"]  # the default deployment's course
+        assert state["course"]["source"] == "replaying run.mcap"
     finally:
         stop(child)
     assert "end of" in log.read_text()

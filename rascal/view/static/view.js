@@ -83,10 +83,10 @@ function onMap(snap) {
 // -- events -------------------------------------------------------------------------------------
 function connect() {
   const source = new EventSource("events");
-  source.onopen = () => { stats.connected = true; document.getElementById("conn").textContent = "live"; };
+  source.onopen = () => { stats.connected = true; document.getElementById("conn").textContent = "connected"; };
   source.onerror = () => { stats.connected = false; document.getElementById("conn").textContent = "reconnecting…"; };
   const on = (name, fn) => source.addEventListener(name, (e) => { stats.events++; dirty = true; fn(JSON.parse(e.data)); });
-  on("course", (c) => { latest.course = c; });
+  on("course", (c) => { latest.course = c; document.getElementById("conn").textContent = c.source; });
   on("scene", (s) => { latest.scene = s; });
   on("trail", (t) => { latest.trail = t; });
   on("health", (h) => { latest.health = h; renderHealth(h); });
