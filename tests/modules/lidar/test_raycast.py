@@ -71,8 +71,10 @@ def test_cylinder_ranges_match_the_circle(
         np.inf,
     )
     expected[expected > scan.spec.max_range_m] = np.inf
-    assert np.array_equal(np.isinf(scan.ranges_m), np.isinf(expected))
-    hit = np.isfinite(expected)  # a thin far cylinder may fall between rays: then none
+    # A ray that grazes the circle (tangent to within rounding) may hit or miss: judge the others.
+    clear_cut = np.abs(half_chord_sq) > 1e-9 * radius**2
+    assert np.array_equal(np.isinf(scan.ranges_m[clear_cut]), np.isinf(expected[clear_cut]))
+    hit = np.isfinite(expected) & clear_cut  # a thin far cylinder may fall between rays: then none
     assert np.all(np.abs(scan.ranges_m[hit] - expected[hit]) < 0.01)
 
 
