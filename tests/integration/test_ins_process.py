@@ -46,32 +46,32 @@ def test_ins_tracks_the_vehicle_and_flags_the_gps_outage(
     processes.module("ins", "--set", f"filter={kind}", "--set", f"course={tmp_path / 'course.rddf'}")
     # The scenario clock starts with the simulator: start it once the sensors and the filter are up,
     # so the test's 3-9 s window is not spent importing on a loaded machine.
-    assert listener.wait_until(lambda: {"nav_sensors", "ins"} <= alive, timeout_s=30.0), processes.log("ins")
-    processes.module("sim", "--set", f"scenario={scenario}")
     truth_at: dict[int, SimTruth] = {}
-    states: list[tuple[SimTruth, VehicleState]] = []
-    unmatched: list[int] = []
+    received: list[tuple[int, VehicleState]] = []
     events: list[HealthEvent] = []
 
     def on_truth(truth: SimTruth, env: Envelope) -> None:
         truth_at[env.t_meas_ns] = truth
 
-    def on_state(state: VehicleState, env: Envelope) -> None:
-        truth = truth_at.get(env.t_meas_ns)  # the IMU sample's time is a truth sample's time
-        if truth is None:
-            unmatched.append(env.t_meas_ns)
-        else:
-            states.append((truth, state))
+    def newest_scenario_time_s() -> float:
+        truth = truth_at.get(received[-1][0]) if received else None
+        return truth.scenario_time_s if truth else 0.0
 
     listener.subscribe(channels.SIM_TRUTH, on_truth)
-    listener.subscribe(channels.VEHICLE_STATE, on_state)
+    listener.subscribe(channels.VEHICLE_STATE, lambda state, env: received.append((env.t_meas_ns, state)))
     listener.subscribe(channels.HEALTH, lambda event, _env: events.append(event))
+    assert listener.wait_until(lambda: {"nav_sensors", "ins"} <= alive, timeout_s=30.0), processes.log("ins")
+    processes.module("sim", "--set", f"scenario={scenario}")
     # Drive gently ahead: throttle to about 6 m/s, straight.
     listener.every(0.02, lambda: listener.bus.publish(channels.ACTUATOR_COMMAND, ActuatorCommand(0.35, 0.0, 0.0)))
     try:
-        done = listener.wait_until(lambda: bool(states) and states[-1][0].scenario_time_s >= 12.0, timeout_s=40.0)
+        done = listener.wait_until(lambda: newest_scenario_time_s() >= 12.0, timeout_s=40.0)
     finally:
         listener.close()
+    # Each solution carries its IMU sample's time, which is a truth sample's time. They are joined
+    # after the drive: the two channels arrive on different sockets, in either order.
+    states = [(truth_at[t], state) for t, state in received if t in truth_at]
+    unmatched = [t for t, _ in received if t not in truth_at]
     assert done, processes.log("ins")
     by_time = [(truth.scenario_time_s, truth, state) for truth, state in states]
     converged = [(t, tr, st) for t, tr, st in by_time if 3.0 <= t < 9.0]
