@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 BROWSER := $(VENV)/.browser
 
-.PHONY: demo test bench fuzz lint clean
+.PHONY: demo test bench drive-bench fuzz lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,10 @@ test: $(STAMP) $(BROWSER)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
+
+# The whole stack driving the default scenario once per seed (about 5.5 min each; run it alone).
+drive-bench: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_drive $(DRIVE_ARGS)
 
 # The receive-path fuzz campaign: a million generated datagrams (FUZZ_ARGS="--inputs N --seed S").
 fuzz: $(STAMP)

@@ -40,6 +40,7 @@ _MAX_TIGHT = 6
 _MAX_PARTIAL = 6
 _RASTER_STEP_M = 0.1  # lateral spacing of the cross-section raster
 _RASTER_MAX_COLUMNS = 240  # wider corridors get a coarser raster
+_GAP_DEPTH_M = 4.0  # gaps are looked for from the conflict to a vehicle length and this much beyond
 
 
 @dataclass(frozen=True)
@@ -89,7 +90,7 @@ def choose(
     """
     stops_at_end = s_end_m >= frame.length_m - 1e-6
     s = stations(s_start_m, s_end_m, config.point_spacing_m)
-    params = _parameters(frame, config, base, s, conflict_m, speed_mps, late_start)
+    params = _parameters(frame, gate, config, base, s, conflict_m, speed_mps, late_start)
     begin, offset, length, back = (params[:, i : i + 1] for i in range(4))
     d = _evaluate(base, s, begin, offset, length, back)
     raster = _CrossSections(frame, gate, s, float(d.min()), float(d.max()))
@@ -222,8 +223,38 @@ class _CrossSections:
         return self._cost[self._rows, nearest]
 
 
+def _gap_offsets(frame: CorridorFrame, gate: PathGate, config: PlannerConfig, conflict_m: float) -> FloatArray:
+    """Offsets through the middle of each gap across the corridor where the current path fails.
+
+    A hazard that leaves a gap barely wider than the vehicle's clearance (a wash across the road
+    with a strip at each side) is passed only by an offset close to the gap's middle, which the
+    regular offset step may straddle. Across the stretch from the conflict to a vehicle length and
+    a few metres on, each offset's margin is the least of its clearance to lethal cells and to the
+    corridor's edge beyond what the gate asks; every run of offsets with a positive margin gives
+    the offset of its best margin."""
+    s = np.arange(conflict_m, conflict_m + config.vehicle_length_m + _GAP_DEPTH_M, config.check_spacing_m)
+    s = s[s <= frame.length_m]
+    if len(s) == 0 or config.max_gap_offsets == 0:
+        return np.zeros(0)
+    slack = config.check_spacing_m / 2.0
+    reach = float(np.min(frame.sure_half_width_at(s))) - gate.corridor_clearance_m - slack
+    if reach <= 0.0:
+        return np.zeros(0)
+    lateral = np.arange(-reach, reach + _RASTER_STEP_M / 2, _RASTER_STEP_M)
+    east, north = frame.cross_sections(s, lateral)
+    margin = np.minimum(
+        gate.hazards.clearance_bound(east, north).min(axis=0) - gate.clearance_m - slack, reach - np.abs(lateral)
+    )
+    open_ = margin > 0.0
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], open_.astype(np.int8), [0]])))
+    best = [start + int(np.argmax(margin[start:end])) for start, end in zip(edges[::2], edges[1::2], strict=True)]
+    best.sort(key=lambda i: -margin[i])
+    return lateral[best[: config.max_gap_offsets]]
+
+
 def _parameters(
     frame: CorridorFrame,
+    gate: PathGate,
     config: PlannerConfig,
     base: LateralProfile,
     s: FloatArray,
@@ -237,7 +268,7 @@ def _parameters(
     reach = max(room, 0.0)
     step = max(config.offset_step_m, 2.0 * reach / max(config.max_offsets - 1, 1))
     count = math.floor(reach / step + 1e-9)
-    offsets = step * np.arange(-count, count + 1)
+    offsets = np.union1d(step * np.arange(-count, count + 1), _gap_offsets(frame, gate, config, conflict_m))
     # Seconds of travel at the current speed, and at the course's speed here: a vehicle slowed
     # below it also gets swerves gentle enough to speed up through.
     course_mps = max(float(frame.speed_at(s[0])), speed_mps)

@@ -34,6 +34,7 @@ class PlannerConfig:
     # Candidates (RASCAL: new paths generated from the vehicle's velocity).
     offset_step_m: float = setting(0.5, "lateral spacing of candidate offsets")
     max_offsets: int = setting(41, "most candidate offsets; wide corridors get a coarser step")
+    max_gap_offsets: int = setting(4, "extra offsets through the middle of the gaps where the path fails, widest first")
     transition_times_s: tuple[float, ...] = setting((1.2, 2.2, 3.5), "lateral transition lengths as seconds of travel")
     min_transition_m: float = setting(4.0, "shortest lateral transition")
     max_transition_m: float = setting(40.0, "longest lateral transition")
@@ -81,7 +82,15 @@ class PlannerConfig:
     caution_probability: float = setting(
         0.6, "hazard probability from which a cell slows the vehicle nearby (unknown cells are 0.5: not caution)"
     )
-    cost_speed_gain: float = setting(0.5, "speed divided by (1 + gain x footprint-mean cost)")
+    cost_speed_gain: float = setting(
+        0.2, "speed divided by (1 + gain x footprint-mean cost); hazards nearby slow it by their clearance already"
+    )
+    # A kept path slowed for a hazard it passes close by is re-planned if a candidate is faster.
+    faster_min_gain_mps: float = setting(1.0, "a kept path is re-examined where a hazard slows it by more than this")
+    faster_lead_s: float = setting(1.0, "...and that slowdown is at least this many seconds of travel ahead")
+    faster_min_saving_s: float = setting(
+        0.3, "a candidate replaces the kept path if it drives the horizon this much sooner"
+    )
 
     def __post_init__(self) -> None:
         for f in fields(self):

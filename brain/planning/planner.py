@@ -5,7 +5,8 @@ RASCAL's behaviour (paper II.C), with Kratos' search (4.5.3) as the fallback:
 1. Keep the current path while it is clear: its polyline over the next ``horizon_m`` passes the
    `PathGate` (hazard clearance, corridor) and the vehicle is still near it. Same ``path_id``.
    Without one (start, slow mode, off the path), the first try is a blend from the vehicle's own
-   offset and heading back to the centre line.
+   offset and heading back to the centre line. A kept path slowed for a hazard close beside it
+   gives way to a candidate (step 2) that drives the horizon sooner.
 2. Otherwise generate candidates from the current speed and take the cheapest that passes
    (`brain.planning.candidates`). New ``path_id``. If none passes for the whole horizon, one that
    is clear well beyond the stopping distance will do, ending in a stop short of the hazard, as
@@ -44,7 +45,7 @@ from brain.planning.hazards import HazardField
 from brain.planning.profile import LateralProfile, swerve
 from brain.planning.search import Lattice, SearchResult, search
 from brain.planning.smoothing import FreeCells, smooth
-from brain.planning.speed import arc_length, clearance_cap, curvature, reachable
+from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, travel_time_s
 from protocol.messages import Path, PathPoint
 
 FloatArray = NDArray[np.float64]
@@ -222,6 +223,9 @@ class _Cycle:
                 path_id = self.planner._new_id()
                 self.planner._current = _Current(path_id, profile=base)
                 return self.publish(path_id, PlanMode.REPLAN, points, s, slow=False)
+            faster = self.faster_way_past(base, points, s, s_end)
+            if faster is not None:
+                return faster
             return self.publish(current.path_id, PlanMode.KEEP, points, s, slow=False)
         conflict = min(self.s0 + verdict.first_failure_m, s_end)
         min_length = self.speed**2 / (2.0 * cfg.max_decel_mps2) + cfg.min_partial_m
@@ -271,6 +275,30 @@ class _Cycle:
         return self.publish(
             path_id, PlanMode.SEARCH, points, None, slow=True, expansions=expansions, reached_goal=reached, **counts
         )
+
+    def faster_way_past(
+        self, base: LateralProfile, points: FloatArray, s: FloatArray, s_end: float
+    ) -> PlanResult | None:
+        """A clear path keeps its slowdowns: one that passes a hazard close by (legal, but at the
+        near-hazard speed) is never re-planned by itself. While the kept path is slowed for a
+        hazard by more than ``faster_min_gain_mps`` at least ``faster_lead_s`` ahead, candidates
+        are generated as if it failed there, and the cheapest clear one replaces it if it drives
+        the horizon ``faster_min_saving_s`` sooner."""
+        cfg = self.cfg
+        near = self.near_cap(points)
+        slowed = np.flatnonzero(near < self.frame.speed_at(s) - cfg.faster_min_gain_mps)
+        if len(slowed) == 0 or s[slowed[0]] - self.s0 < cfg.faster_lead_s * max(self.speed, cfg.start_speed_mps):
+            return None
+        slowdown_m = float(s[slowed[0]])
+        choice = choose(self.frame, self.gate, cfg, base, self.s0, s_end, slowdown_m, self.speed, True, math.inf)
+        if choice.profile is None or choice.points is None or choice.stations_m is None:
+            return None
+        if self.travel_time(choice.points, choice.stations_m) > self.travel_time(points, s) - cfg.faster_min_saving_s:
+            return None
+        path_id = self.planner._new_id()
+        self.planner._current = _Current(path_id, profile=choice.profile)
+        counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
+        return self.publish(path_id, PlanMode.REPLAN, choice.points, choice.stations_m, slow=False, **counts)
 
     def default_profile(self) -> LateralProfile:
         """From the vehicle's own lateral state (its offset, and its heading relative to the
@@ -425,24 +453,12 @@ class _Cycle:
         """The Path for ``points`` with speeds under every cap; it ends at speed 0 in slow mode
         (a searched path ends where the search did) and when ``stop_at_end``."""
         cfg = self.cfg
-        hazards = self.gate.hazards
         along = arc_length(points)
         if stations_m is None:
             # A searched path is slow anyway; its stations only matter for the course's end, and
             # its length is never less than the station progress, so the end is seen early.
             stations_m = self.s0 + along
-        with np.errstate(divide="ignore"):
-            turn_cap = np.sqrt(cfg.max_lateral_accel_mps2 / curvature(points, cfg.curvature_window_m))
-        course_cap = self.frame.speed_at(stations_m) / (
-            1.0 + cfg.cost_speed_gain * hazards.cost_at(points[:, 0], points[:, 1])
-        )
-        near_cap = clearance_cap(
-            hazards.caution_clearance(points[:, 0], points[:, 1]),
-            cfg.clearance_m,
-            cfg.near_hazard_speed_mps,
-            cfg.hazard_speed_gain_mps_per_m,
-        )
-        cap = np.minimum.reduce([turn_cap, course_cap, near_cap, np.full(len(points), self.max_speed)])
+        cap = self.speed_caps(points, stations_m)
         if slow:
             cap = np.minimum(cap, cfg.slow_speed_mps)
         final = 0.0 if slow or stop_at_end else float(cap[-1])
@@ -454,6 +470,35 @@ class _Cycle:
             slow,
         )
         return PlanResult(path, mode, self.s0, self.d0, **figures)
+
+    def speed_caps(self, points: FloatArray, stations_m: FloatArray) -> FloatArray:
+        """Each point's speed cap: the course's speed slowed by the footprint cost, the path's
+        curvature, the clearance to caution cells, and the health monitor's limit."""
+        cfg = self.cfg
+        with np.errstate(divide="ignore"):
+            turn_cap = np.sqrt(cfg.max_lateral_accel_mps2 / curvature(points, cfg.curvature_window_m))
+        course_cap = self.frame.speed_at(stations_m) / (
+            1.0 + cfg.cost_speed_gain * self.gate.hazards.cost_at(points[:, 0], points[:, 1])
+        )
+        return np.minimum.reduce([turn_cap, course_cap, self.near_cap(points), np.full(len(points), self.max_speed)])
+
+    def near_cap(self, points: FloatArray) -> FloatArray:
+        """The speed allowed at each point by its clearance to caution cells."""
+        cfg = self.cfg
+        return clearance_cap(
+            self.gate.hazards.caution_clearance(points[:, 0], points[:, 1]),
+            cfg.clearance_m,
+            cfg.near_hazard_speed_mps,
+            cfg.hazard_speed_gain_mps_per_m,
+        )
+
+    def travel_time(self, points: FloatArray, stations_m: FloatArray) -> float:
+        """Seconds to drive ``points`` from the vehicle's start speed under their speed caps."""
+        cfg = self.cfg
+        along = arc_length(points)
+        caps = self.speed_caps(points, stations_m)
+        speeds = reachable(along, caps, self.start_speed(), np.inf, cfg.max_accel_mps2, cfg.max_decel_mps2)
+        return float(travel_time_s(along, speeds))
 
     def start_speed(self) -> float:
         """The speed a new profile starts from: the vehicle's, or while it is on the last path,

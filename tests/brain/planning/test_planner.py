@@ -94,6 +94,44 @@ def chicane(grid: Map) -> Map:
     return grid.box(147.0, -15.0, 148.0, 15.0).clear_box(146.0, -7.5, 149.0, -3.5)
 
 
+def test_a_wash_across_the_road_is_passed_through_the_strip_beside_it_at_speed() -> None:
+    """A ditch across the corridor leaves a strip 2.2 m wide at each side: only offsets within
+    0.3 m of 8.2 m pass the gate, between the regular 0.5 m offset steps. A gap-centred offset
+    swerves through it without dropping to the search's slow mode."""
+    p = planner()
+    grid = field()
+    plan(p, grid, Pose(100.0, 0.0, 0.0, 10.0))
+    grid.box(150.0, -7.0, 152.5, 7.0)
+    result = plan(p, grid, Pose(101.0, 0.0, 0.0, 10.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and not result.slow_mode
+    assert_safe(points, grid)
+    beside = points[np.abs(points[:, 0] - 151.0) < 2.0]
+    assert np.all(np.abs(beside[:, 1]) > 8.0) and np.all(np.abs(beside[:, 1]) < 8.45)
+    assert beside[:, 2].min() > 3.0
+    without = plan(planner(max_gap_offsets=0), grid, Pose(101.0, 0.0, 0.0, 10.0))
+    assert without.mode is not PlanMode.REPLAN  # the regular offsets alone do not get through
+
+
+def test_a_kept_path_slowed_by_a_rock_beside_it_gives_way_to_a_faster_one() -> None:
+    """A rock 1.2 m from the kept centre line leaves it clear but slows it to the near-hazard
+    speed; a path passing further away is faster, and replaces it while there is time."""
+    p = planner()
+    grid = field()
+    kept = plan(p, grid, Pose(100.0, 0.0, 0.0, RDDF_SPEED))
+    grid.disc(150.0, 1.7, 0.5)
+    assert polyline_distance(path_points(kept.path)[:, :2], grid.lethal_centres()) > CONFIG.clearance_m
+    slow_there = CONFIG.near_hazard_speed_mps + CONFIG.hazard_speed_gain_mps_per_m * (1.2 - CONFIG.clearance_m)
+    result = plan(p, grid, Pose(101.0, 0.0, 0.0, RDDF_SPEED))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and result.path.path_id != kept.path.path_id
+    assert_safe(points, grid)
+    beside = points[np.abs(points[:, 0] - 150.0) < 1.0]
+    assert beside[:, 1].max() < -0.5 and beside[:, 2].min() > slow_there + 2.0
+    again = plan(p, grid, Pose(102.0, float(points[1, 1]), 0.0, RDDF_SPEED))
+    assert again.mode is PlanMode.KEEP and again.path.path_id == result.path.path_id
+
+
 def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
     p = planner()
     grid = chicane(field())
@@ -117,7 +155,7 @@ def test_a_gap_narrower_than_the_lattice_is_found_cell_by_cell() -> None:
     (clearance plus slack is 1.27 m each side), at north 0.3: off the stride-3 lattice through
     the vehicle's row (0.1, 0.7, ...). The search retries on every cell and gets through.
     Candidates are held to the centre line here, which passes the gap 1.1 m from a wall cell."""
-    p = planner(max_offsets=1)
+    p = planner(max_offsets=1, max_gap_offsets=0)
     grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -1.0, 142.0, 1.6)
     assert CONFIG.search_stride == 3
     result = plan(p, grid, Pose(130.0, 0.0, 0.0, 2.0))
