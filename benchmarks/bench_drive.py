@@ -4,7 +4,8 @@ Issue 7's measure of the stack as a driver: ``rascal run`` on the default deploy
 its own process on the signed loopback bus, with the scenario's seed changed so the random rocks
 and bushes (and the GPS jumps) lie elsewhere each time. Each drive writes its run directory; the
 table is read from their ``summary.json`` (the referee's drive measures). The targets are those of
-the issue: every seed finished with 0 collisions and 0 corridor exits, mean speed at least 80 % of
+the issue: every seed finished with 0 collisions, 0 corridor exits and no wheel on a ditch or berm
+(the simulator drives through them; the referee counts it), mean speed at least 80 % of
 what the RDDF and curvature allow, RMS cross-track error to the path at most 0.3 m.
 
 A drive takes about 5.5 minutes and needs both cores of a 2-core machine: run this alone. Each
@@ -98,6 +99,7 @@ def meets_targets(measures: dict[str, object]) -> bool:
         measures.get("finished")
         and measures.get("collisions") == 0
         and measures.get("corridor_exits") == 0
+        and measures.get("hazard_entries") == 0
         and float(measures.get("speed_ratio", 0.0)) >= MIN_SPEED_RATIO  # type: ignore[arg-type]
         and float(measures.get("cross_track_rms_m", 1e9)) <= MAX_CROSS_TRACK_RMS_M  # type: ignore[arg-type]
     )
@@ -105,7 +107,7 @@ def meets_targets(measures: dict[str, object]) -> bool:
 
 def table(results: Sequence[dict[str, object]]) -> Table:
     out = Table(
-        f"closed-loop drives of the default scenario (targets: finished, 0 collisions, 0 exits, "
+        f"closed-loop drives of the default scenario (targets: finished, 0 collisions, 0 exits, 0 ditch/berm entries, "
         f"speed >= {MIN_SPEED_RATIO:.0%} of allowed, RMS <= {MAX_CROSS_TRACK_RMS_M} m)",
         [
             "seed",
@@ -118,13 +120,14 @@ def table(results: Sequence[dict[str, object]]) -> Table:
             "max m",
             "collisions",
             "exits",
+            "ditch/berm entries",
             "clearance m",
             "meets",
         ],
     )
     for m in results:
         if "time_s" not in m:
-            out.add(str(m["seed"]), "no", *(["-"] * 9), "no")
+            out.add(str(m["seed"]), "no", *(["-"] * 10), "no")
             continue
         out.add(
             str(m["seed"]),
@@ -137,6 +140,7 @@ def table(results: Sequence[dict[str, object]]) -> Table:
             f"{m['cross_track_max_m']:.2f}",
             str(m["collisions"]),
             str(m["corridor_exits"]),
+            str(m["hazard_entries"]),
             f"{m['min_clearance_m']:.2f}",
             "yes" if meets_targets(m) else "no",
         )

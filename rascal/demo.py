@@ -24,12 +24,18 @@ def run_demo(runs_dir: Path = Path("runs")) -> int:
     _, run_dir = run(deployment, LOCALHOST, runs_dir, DEMO_LIMIT_S)
     summary = json.loads((run_dir / "summary.json").read_text())
     drive = summary.get("drive", {})
-    ok = bool(drive.get("finished")) and drive.get("collisions") == 0 and drive.get("corridor_exits") == 0
+    ok = (
+        bool(drive.get("finished"))
+        and drive.get("collisions") == 0
+        and drive.get("corridor_exits") == 0
+        and drive.get("hazard_entries", 0) == 0
+    )
     print(
         f"demo {'OK' if ok else 'FAILED'}: finished {drive.get('finished')}, "
         f"{100 * drive.get('completion', 0):.1f} % of {drive.get('route_length_m', 0):.0f} m in "
         f"{drive.get('time_s', 0):.0f} s, collisions {drive.get('collisions')}, "
-        f"corridor exits {drive.get('corridor_exits')}, mean speed {drive.get('mean_speed_mps', 0):.2f} of "
+        f"corridor exits {drive.get('corridor_exits')}, ditch/berm entries {drive.get('hazard_entries')}, "
+        f"mean speed {drive.get('mean_speed_mps', 0):.2f} of "
         f"{drive.get('allowed_mean_speed_mps', 0):.2f} m/s allowed ({100 * drive.get('speed_ratio', 0):.1f} %), "
         f"cross-track RMS {drive.get('cross_track_rms_m', 0):.2f} m"
     )

@@ -146,6 +146,7 @@ def drive_line(data: RunData) -> str:
         ("mean_speed_mps", "mean {:.1f} m/s"),
         ("collisions", "collisions {}"),
         ("corridor_exits", "corridor exits {}"),
+        ("hazard_entries", "ditch/berm entries {}"),
         ("min_clearance_m", "min clearance {:.2f} m"),
     ):
         if drive.get(key) is not None:

@@ -3,8 +3,10 @@
 Sans-IO: feed every truth sample (and every planned path as it is published); read ``result()``.
 Measures: completion and time; mean speed against the mean the RDDF and curvature allow (the
 course path's own speed profile); cross-track error of the true position to the newest planned
-path (RMS and max); collisions and corridor exits (the simulator counts them); the minimum
-clearance between the vehicle's footprint and any obstacle.
+path (RMS and max); collisions and corridor exits (the simulator counts them); entries onto
+terrain hazards (the simulator drives through ditches and over berms, so the referee counts each
+time the footprint comes onto ground more than 0.15 m off level); the minimum clearance between
+the vehicle's footprint and any obstacle.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from modules.lidar.profile import ground_height
 from modules.sim.collision import clearance_m
 from modules.sim.scenario import Scenario
 from modules.sim.vehicle import VehicleParams
@@ -21,6 +24,8 @@ from protocol.messages import Path, SimTruth
 
 FINISH_DISTANCE_M = 5.0  # control stops 2-3 m short of the last waypoint; rascal run agrees (rascal/run.py)
 CLEARANCE_REACH_M = 15.0  # obstacles farther from the vehicle's centre cannot set the minimum
+HAZARD_STEP_M = 0.15  # ground this far off level under the footprint is on a hazard (fusion's profile step)
+FOOTPRINT_SAMPLES = (7, 4)  # points along and across the footprint where the ground is looked up
 
 
 @dataclass(frozen=True)
@@ -37,6 +42,7 @@ class DriveMeasures:
     cross_track_max_m: float
     collisions: int
     corridor_exits: int
+    hazard_entries: int  # times the footprint came onto a ditch or berm
     min_clearance_m: float
     samples: int
 
@@ -51,6 +57,18 @@ class Referee:
         self.obstacles = scenario.world.obstacles
         self._obstacle_xy = np.array([(o.east_m, o.north_m) for o in self.obstacles]).reshape(-1, 2)
         self._reach = np.array([o.footprint_radius_m() for o in self.obstacles]) + CLEARANCE_REACH_M
+        self.hazards = tuple(scenario.world.hazards)
+        self._hazard_xy = np.array([(h.east_m, h.north_m) for h in self.hazards]).reshape(-1, 2)
+        self._hazard_reach = np.array([math.hypot(h.length_m, h.width_m) / 2 for h in self.hazards])
+        self._hazard_reach += self.params.length_m
+        p = self.params
+        along, across = np.meshgrid(
+            np.linspace(-p.rear_overhang_m, p.length_m - p.rear_overhang_m, FOOTPRINT_SAMPLES[0]),
+            np.linspace(-p.width_m / 2, p.width_m / 2, FOOTPRINT_SAMPLES[1]),
+        )
+        self._footprint = np.column_stack([along.ravel(), across.ravel()])
+        self.hazard_entries = 0
+        self._on_hazard = False
         self.path_xy: np.ndarray | None = None
         self.cross_track: list[float] = []
         self.min_clearance_m = math.inf
@@ -74,10 +92,27 @@ class Referee:
             return  # after the finish only the totals matter
         if self.path_xy is not None and truth.speed_mps > 0.5:
             self.cross_track.append(distance_to_polyline(self.path_xy, truth.east_m, truth.north_m))
+        on_hazard = self._footprint_on_hazard(truth)
+        if on_hazard and not self._on_hazard:
+            self.hazard_entries += 1
+        self._on_hazard = on_hazard
         if len(self.obstacles):
             d = np.hypot(self._obstacle_xy[:, 0] - truth.east_m, self._obstacle_xy[:, 1] - truth.north_m)
             for index in np.flatnonzero(d < self._reach):
                 self.min_clearance_m = min(self.min_clearance_m, clearance_m(truth, self.obstacles[index], self.params))
+
+    def _footprint_on_hazard(self, truth: SimTruth) -> bool:
+        """Whether ground under the vehicle's footprint is more than a step off level."""
+        if not self.hazards:
+            return False
+        d = np.hypot(self._hazard_xy[:, 0] - truth.east_m, self._hazard_xy[:, 1] - truth.north_m)
+        near = [self.hazards[i] for i in np.flatnonzero(d < self._hazard_reach)]
+        if not near:
+            return False
+        c, s = math.cos(truth.yaw_rad), math.sin(truth.yaw_rad)
+        x, y = self._footprint[:, 0], self._footprint[:, 1]
+        height = ground_height(near, truth.east_m + c * x - s * y, truth.north_m + s * x + c * y)
+        return bool(np.max(np.abs(height)) > HAZARD_STEP_M)
 
     def result(self) -> DriveMeasures:
         last = self.last
@@ -100,6 +135,7 @@ class Referee:
             cross_track_max_m=float(np.max(track)),
             collisions=last.collisions if last else 0,
             corridor_exits=last.corridor_exits if last else 0,
+            hazard_entries=self.hazard_entries,
             min_clearance_m=self.min_clearance_m,
             samples=self.samples,
         )

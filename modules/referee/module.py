@@ -72,5 +72,6 @@ class Referee(Module):
         return (
             f"{100 * r.completion:.1f} % in {r.time_s:.0f} s, {r.mean_speed_mps:.1f} m/s "
             f"({100 * r.speed_ratio:.0f} % of allowed), xtrack rms {r.cross_track_rms_m:.2f} m, "
-            f"collisions {r.collisions}, exits {r.corridor_exits}, clearance {r.min_clearance_m:.2f} m"
+            f"collisions {r.collisions}, exits {r.corridor_exits}, hazard entries {r.hazard_entries}, "
+            f"clearance {r.min_clearance_m:.2f} m"
         )

@@ -12,6 +12,7 @@ GOOD = {
     "finished": True,
     "collisions": 0,
     "corridor_exits": 0,
+    "hazard_entries": 0,
     "speed_ratio": 0.81,
     "cross_track_rms_m": 0.12,
 }
@@ -37,6 +38,7 @@ def test_every_target_must_be_met() -> None:
         ("finished", False),
         ("collisions", 1),
         ("corridor_exits", 1),
+        ("hazard_entries", 1),
         ("speed_ratio", 0.79),
         ("cross_track_rms_m", 0.31),
     ):
