@@ -31,6 +31,7 @@ from pathlib import Path
 from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
+from modules.referee.measures import drove_safely
 from modules.sim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -96,10 +97,7 @@ def drive(seed: int, runs_dir: Path, scratch: Path) -> dict[str, object]:
 
 def meets_targets(measures: dict[str, object]) -> bool:
     return bool(
-        measures.get("finished")
-        and measures.get("collisions") == 0
-        and measures.get("corridor_exits") == 0
-        and measures.get("hazard_entries") == 0
+        drove_safely(measures)
         and float(measures.get("speed_ratio", 0.0)) >= MIN_SPEED_RATIO  # type: ignore[arg-type]
         and float(measures.get("cross_track_rms_m", 1e9)) <= MAX_CROSS_TRACK_RMS_M  # type: ignore[arg-type]
     )

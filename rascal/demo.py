@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from modules.referee.measures import drove_safely
 from rascal.deployment import DEFAULT_DEPLOYMENT, LOCALHOST, load_deployment
 from rascal.run import run
 
@@ -24,12 +25,7 @@ def run_demo(runs_dir: Path = Path("runs")) -> int:
     _, run_dir = run(deployment, LOCALHOST, runs_dir, DEMO_LIMIT_S)
     summary = json.loads((run_dir / "summary.json").read_text())
     drive = summary.get("drive", {})
-    ok = (
-        bool(drive.get("finished"))
-        and drive.get("collisions") == 0
-        and drive.get("corridor_exits") == 0
-        and drive.get("hazard_entries", 0) == 0
-    )
+    ok = drove_safely(drive)
     print(
         f"demo {'OK' if ok else 'FAILED'}: finished {drive.get('finished')}, "
         f"{100 * drive.get('completion', 0):.1f} % of {drive.get('route_length_m', 0):.0f} m in "

@@ -12,6 +12,7 @@ the vehicle's footprint and any obstacle.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -57,11 +58,10 @@ class Referee:
         self.obstacles = scenario.world.obstacles
         self._obstacle_xy = np.array([(o.east_m, o.north_m) for o in self.obstacles]).reshape(-1, 2)
         self._reach = np.array([o.footprint_radius_m() for o in self.obstacles]) + CLEARANCE_REACH_M
+        p = self.params
         self.hazards = tuple(scenario.world.hazards)
         self._hazard_xy = np.array([(h.east_m, h.north_m) for h in self.hazards]).reshape(-1, 2)
-        self._hazard_reach = np.array([math.hypot(h.length_m, h.width_m) / 2 for h in self.hazards])
-        self._hazard_reach += self.params.length_m
-        p = self.params
+        self._hazard_reach = np.array([math.hypot(h.length_m, h.width_m) / 2 + p.length_m for h in self.hazards])
         along, across = np.meshgrid(
             np.linspace(-p.rear_overhang_m, p.length_m - p.rear_overhang_m, FOOTPRINT_SAMPLES[0]),
             np.linspace(-p.width_m / 2, p.width_m / 2, FOOTPRINT_SAMPLES[1]),
@@ -150,6 +150,17 @@ class Referee:
         segment_speed = np.maximum((v[:-1] + v[1:]) / 2.0, 1e-3)
         time_s = float(np.sum(np.diff(s) / segment_speed))
         return float(s[-1] - s[0]) / time_s if time_s > 0 else 0.0
+
+
+def drove_safely(drive: Mapping[str, object]) -> bool:
+    """Whether drive measures (``DriveMeasures.as_dict()``, as in summary.json) show a finished
+    course with no collision, corridor exit or ditch/berm entry."""
+    return bool(
+        drive.get("finished")
+        and drive.get("collisions") == 0
+        and drive.get("corridor_exits") == 0
+        and drive.get("hazard_entries", 0) == 0
+    )
 
 
 def distance_to_polyline(points: np.ndarray, east_m: float, north_m: float) -> float:
