@@ -10,7 +10,9 @@ what the RDDF and curvature allow, RMS cross-track error to the path at most 0.3
 
 A drive takes about 5.5 minutes and needs both cores of a 2-core machine: run this alone. Each
 drive gets its own bus (a multicast group and port picked from the seed, ttl=0) so a demo running
-meanwhile cannot mix with it.
+meanwhile cannot mix with it. Stopped (Ctrl-C, SIGTERM) or past its timeout, the benchmark stops
+the stack it started the way ``rascal run`` expects (SIGTERM: its modules in order), and removes
+its scratch copies: no stack is left driving on a bus nobody watches.
 
 Usage: ``python -m benchmarks.bench_drive [--seeds 2005 2006 ...] [--runs-dir DIR]``.
 """
@@ -18,8 +20,10 @@ Usage: ``python -m benchmarks.bench_drive [--seeds 2005 2006 ...] [--runs-dir DI
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -27,6 +31,8 @@ import time
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
+from types import FrameType
+from typing import IO
 
 from rich.console import Console
 
@@ -39,6 +45,7 @@ DEPLOYMENT = ROOT / "deploy" / "localhost.toml"
 RASCAL = Path(sys.executable).with_name("rascal")  # the command the venv installs
 DEFAULT_SEEDS = (2005, 2006, 2007, 2008, 2009)
 TIMEOUT_S = 900.0  # a drive that has not ended by then has stalled
+STOP_GRACE_S = 30.0  # for rascal run to stop its modules in order and write its summary
 MIN_SPEED_RATIO = 0.80
 MAX_CROSS_TRACK_RMS_M = 0.3
 
@@ -77,15 +84,9 @@ def drive(seed: int, runs_dir: Path, scratch: Path) -> dict[str, object]:
     deployment = seeded_deployment(seed, scratch)
     out = runs_dir / f"seed-{seed}"
     start = time.monotonic()
-    with (scratch / f"rascal-run-{seed}.log").open("w") as log:
-        subprocess.run(
-            [str(RASCAL), "run", str(deployment), "--runs-dir", str(out)],
-            cwd=ROOT,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            timeout=TIMEOUT_S,
-            check=False,
-        )
+    # Past the timeout it is stopped; its summary (if any) says it did not finish.
+    with (scratch / f"rascal-run-{seed}.log").open("w") as log, contextlib.suppress(subprocess.TimeoutExpired):
+        run_stack([str(RASCAL), "run", str(deployment), "--runs-dir", str(out)], log, TIMEOUT_S, STOP_GRACE_S)
     summaries = sorted(out.glob("*/summary.json"))
     if not summaries:
         return {"seed": seed, "finished": False, "wall_s": time.monotonic() - start, "run_dir": str(out)}
@@ -93,6 +94,30 @@ def drive(seed: int, runs_dir: Path, scratch: Path) -> dict[str, object]:
     measures = dict(summary.get("drive") or {})
     measures.update(seed=seed, wall_s=time.monotonic() - start, run_dir=str(summaries[-1].parent))
     return measures
+
+
+class Stopped(Exception):
+    """The benchmark itself was told to stop (SIGTERM)."""
+
+
+def _raise_stopped(signum: int, _frame: FrameType | None) -> None:
+    raise Stopped(signal.Signals(signum).name)
+
+
+def run_stack(command: Sequence[str], log: IO[str], timeout_s: float, grace_s: float) -> None:
+    """Run ``command`` (a ``rascal run``) to its end; if that takes over ``timeout_s`` (raising
+    TimeoutExpired) or anything interrupts the wait, SIGTERM it, and SIGKILL it after ``grace_s``."""
+    process = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        process.wait(timeout=timeout_s)
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
 
 
 def meets_targets(measures: dict[str, object]) -> bool:
@@ -153,10 +178,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     console = Console()
     console.print(machine_line("drive"), markup=False, highlight=False)
     results = []
-    with tempfile.TemporaryDirectory(prefix="rascal-drive-") as scratch:
-        for seed in args.seeds:
-            results.append(drive(seed, args.runs_dir, Path(scratch)))
-            console.print(f"seed {seed}: {json.dumps(results[-1])}", markup=False, highlight=False)
+    signal.signal(signal.SIGTERM, _raise_stopped)  # unwind like Ctrl-C: stop the stack, clean up
+    try:
+        with tempfile.TemporaryDirectory(prefix="rascal-drive-") as scratch:
+            for seed in args.seeds:
+                results.append(drive(seed, args.runs_dir, Path(scratch)))
+                console.print(f"seed {seed}: {json.dumps(results[-1])}", markup=False, highlight=False)
+    except (Stopped, KeyboardInterrupt):
+        console.print(f"stopped after {len(results)} of {len(args.seeds)} drives", markup=False, highlight=False)
+        return 130
     print_table(console, table(results))
     return 0 if all(meets_targets(m) for m in results) else 1
 

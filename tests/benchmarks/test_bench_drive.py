@@ -1,10 +1,19 @@
-"""The drive benchmark's seeded copies of the default deployment, and its pass/fail rule."""
+"""The drive benchmark's seeded copies of the default deployment, its pass/fail rule, and how it
+stops the stack it started."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
-from benchmarks.bench_drive import meets_targets, seeded_deployment
+import pytest
+
+from benchmarks.bench_drive import Stopped, _raise_stopped, meets_targets, run_stack, seeded_deployment
 from modules.sim.scenario import load_scenario
 from rascal.deployment import load_deployment
 
@@ -44,3 +53,49 @@ def test_every_target_must_be_met() -> None:
     ):
         assert not meets_targets({**GOOD, key: bad}), key
     assert not meets_targets({"seed": 1, "finished": False})
+
+
+# A stand-in for `rascal run`: it records that it was told to stop, as rascal run stops its modules.
+STACK = """
+import pathlib, signal, sys, time
+flag = pathlib.Path(sys.argv[1])
+signal.signal(signal.SIGTERM, lambda *_: (flag.write_text("stopped"), sys.exit(0)))
+flag.write_text("running")
+time.sleep(60)
+"""
+
+
+def _wait_for(path: Path, text: str, limit_s: float = 10.0) -> None:
+    deadline = time.monotonic() + limit_s
+    while not (path.exists() and path.read_text() == text):
+        assert time.monotonic() < deadline, f"{path} never said {text!r}"
+        time.sleep(0.02)
+
+
+def test_a_stack_past_its_timeout_is_told_to_stop(tmp_path: Path) -> None:
+    flag = tmp_path / "flag"
+    with (tmp_path / "log").open("w") as log, pytest.raises(subprocess.TimeoutExpired):
+        run_stack([sys.executable, "-c", STACK, str(flag)], log, timeout_s=1.0, grace_s=5.0)
+    assert flag.read_text() == "stopped"
+
+
+def test_sigterm_to_the_benchmark_stops_the_stack_it_started(tmp_path: Path) -> None:
+    flag = tmp_path / "flag"
+    previous = signal.signal(signal.SIGTERM, _raise_stopped)
+    timer = threading.Thread(target=lambda: (_wait_for(flag, "running"), os.kill(os.getpid(), signal.SIGTERM)))
+    timer.start()
+    try:
+        with (tmp_path / "log").open("w") as log, pytest.raises(Stopped):
+            run_stack([sys.executable, "-c", STACK, str(flag)], log, timeout_s=30.0, grace_s=5.0)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        timer.join()
+    assert flag.read_text() == "stopped"
+
+
+def test_a_stack_that_ignores_sigterm_is_killed_after_the_grace(tmp_path: Path) -> None:
+    stubborn = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"
+    start = time.monotonic()
+    with (tmp_path / "log").open("w") as log, pytest.raises(subprocess.TimeoutExpired):
+        run_stack([sys.executable, "-c", stubborn], log, timeout_s=0.5, grace_s=0.5)
+    assert time.monotonic() - start < 10.0
