@@ -94,6 +94,7 @@ def test_sigterm_to_the_benchmark_stops_the_stack_it_started(tmp_path: Path) -> 
 
 
 def test_a_stack_that_ignores_sigterm_is_killed_after_the_grace(tmp_path: Path) -> None:
+    # A stand-in for a hung rascal run: it ignores SIGTERM and would outlive the whole test.
     stubborn = "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"
     start = time.monotonic()
     with (tmp_path / "log").open("w") as log, pytest.raises(subprocess.TimeoutExpired):
