@@ -53,6 +53,7 @@ from benchmarks.netns import (
     unavailable_reason,
 )
 from benchmarks.report import Table, machine_line, print_table
+from protocol import fastpath
 from protocol.auth import Keyring
 from protocol.transport import RECV_BUFFER_BYTES
 
@@ -307,7 +308,10 @@ def size_line(rows: LatencyRows) -> str:
     size = rows[SIGNED].wire_bytes
     low, high = SIZE_RANGE
     verdict = "within" if low <= size <= high else "OUTSIDE"
-    return f"rascal signed ObstacleList datagram: {size} B ({verdict} the {low}-{high} B target)"
+    return (
+        f"rascal signed ObstacleList datagram: {size} B ({verdict} the {low}-{high} B target); "
+        f"receive and send path: {fastpath.describe()}"
+    )
 
 
 # -- running ----------------------------------------------------------------------------------

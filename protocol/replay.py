@@ -14,6 +14,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from protocol.errors import ProtocolError, Reason
+from protocol.fastpath import native
 
 WINDOW = 64
 RESTART_JUMP = 1_000_000
@@ -36,8 +37,10 @@ class _Stream:
         self.seen = 1  # bit i set: highest - i was accepted
 
 
-class ReplayGuard:
-    """Accepts each (source, channel, seq) once, and only while fresh."""
+class PythonReplayGuard:
+    """Accepts each (source, channel, seq) once, and only while fresh.
+
+    The reference; :data:`ReplayGuard` is the C twin of it where the fast path is built."""
 
     def __init__(self, limits: ReplayLimits | None = None) -> None:
         self.limits = limits or ReplayLimits()
@@ -86,3 +89,23 @@ class ReplayGuard:
 
     def forget(self, source_id: int, channel: str) -> None:
         self._streams.pop((source_id, channel), None)
+
+    def __len__(self) -> int:
+        """Streams tracked now (at most ``limits.max_streams``)."""
+        return len(self._streams)
+
+
+ReplayGuard: type[PythonReplayGuard]
+if native is not None:
+
+    class _NativeReplayGuard(native.ReplayGuard):  # type: ignore[misc,name-defined]
+        """PythonReplayGuard's rules and errors in C (protocol/_fastpath.c)."""
+
+        __slots__ = ()
+
+        def __init__(self, limits: ReplayLimits | None = None) -> None:
+            super().__init__(limits or ReplayLimits())
+
+    ReplayGuard = _NativeReplayGuard  # type: ignore[assignment]
+else:
+    ReplayGuard = PythonReplayGuard

@@ -20,6 +20,7 @@ from operator import itemgetter
 from typing import Any, NamedTuple, TypeVar
 
 from protocol.errors import ProtocolError, Reason
+from protocol.fastpath import native
 
 M = TypeVar("M", bound=tuple)
 
@@ -31,6 +32,8 @@ _SCALARS: dict[type, tuple[type, ...]] = {
     str: (str,),
     bytes: (bytes,),
 }
+# Field codes of the C decoder's plans (protocol/_fastpath.c); a sequence of X is X upper-cased.
+_KINDS = {float: "f", int: "i", bool: "b", str: "s", bytes: "y"}
 
 
 class MessageInfo(NamedTuple):
@@ -40,6 +43,8 @@ class MessageInfo(NamedTuple):
     cls: type
     fingerprint: str
     decode: Callable[[Any], Any]
+    # The layout as the C fast path reads it: (cls, field codes, plans of record fields).
+    plan: tuple[Any, ...]
 
 
 _BY_ID: dict[int, MessageInfo] = {}
@@ -54,7 +59,8 @@ def message(type_id: int) -> Callable[[type[M]], type[M]]:
             raise ValueError(f"type_id {type_id} out of range 1..65535")
         if type_id in _BY_ID:
             raise ValueError(f"type_id {type_id} used by {_BY_ID[type_id].cls.__name__} and {cls.__name__}")
-        info = MessageInfo(type_id, cls, fingerprint(cls), _compile_decoder(cls))
+        plan = _plan(cls)
+        info = MessageInfo(type_id, cls, fingerprint(cls), _with_fast_path(plan, _compile_decoder(cls)), plan)
         _BY_ID[type_id] = info
         _BY_CLASS[cls] = info
         return cls
@@ -165,6 +171,38 @@ def _compile_decoder(cls: type) -> Callable[[Any], Any]:
         return new(cls, raw)
 
     return decode
+
+
+def _plan(cls: type) -> tuple[Any, ...]:
+    """Describe a layout for ``_fastpath.decode``: (cls, one code per field, record plans)."""
+    codes, subplans = [], []
+    for tp in _hints(cls).values():
+        subplan = None
+        if tp in _KINDS:
+            code = _KINDS[tp]
+        else:
+            (item, _ellipsis) = typing.get_args(tp)  # tuple[X, ...]; _compile_decoder vetted it
+            if _is_namedtuple(item):
+                code, subplan = "R", _plan(item)
+            else:
+                code = _KINDS[item].upper()
+        codes.append(code)
+        subplans.append(subplan)
+    return (cls, "".join(codes).encode("ascii"), tuple(subplans))
+
+
+def _with_fast_path(plan: tuple[Any, ...], decode: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """The C decoder for this layout, falling back to ``decode`` for whatever it leaves alone
+    (other layout versions, and every malformed body, whose error Python words)."""
+    if native is None:
+        return decode
+    fast = native.decode
+
+    def decode_fast(raw: Any) -> Any:
+        msg = fast(plan, raw)
+        return decode(raw) if msg is None else msg
+
+    return decode_fast
 
 
 def _sequence_decoder(item: Any, where: str) -> Callable[[tuple], tuple]:

@@ -550,7 +550,7 @@ class BusReceiver:
         assert self.bus.reassembler.pending() == 0
         assert not self.bus.reassembler.dropped
         assert len(self.bus.rejects) <= MAX_REJECT_SOURCES + len(Reason)
-        assert len(self.bus.replay._streams) <= self.bus.replay.limits.max_streams
+        assert len(self.bus.replay) <= self.bus.replay.limits.max_streams
         direct = sum(n for (_source, reason), n in self.bus.rejects.items() if reason not in DEFERRED)
         assert direct == self.bus.direct_rejects
         self.bus.close()

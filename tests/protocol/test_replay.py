@@ -178,7 +178,7 @@ def test_the_number_of_streams_is_bounded() -> None:
     rng = random.Random(1)
     for _ in range(2000):
         check(guard, rng.randrange(2**40), source_id=rng.randrange(1, 0x10000), channel=f"C{rng.randrange(50)}")
-        assert len(guard._streams) <= limits.max_streams
+        assert len(guard) <= limits.max_streams
 
 
 def test_forget_drops_a_stream() -> None:

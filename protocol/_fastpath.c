@@ -1,0 +1,825 @@
+/* The bus's per-message hot path in C: sealing, opening, decoding and replay checks.
+ *
+ * Every piece has a pure-Python twin, which stays the reference and the fallback where no
+ * compiler was at hand: seal/open in protocol/codec.py, decode in protocol/schema.py, ReplayGuard
+ * in protocol/replay.py, Receiver in rascal/bus.py (Bus._accept). The C side only takes the
+ * common case: a well-formed, authentic message whose body has exactly the layout this build
+ * declares. For anything else it returns None and the caller runs the Python twin, which accepts
+ * the other layout versions or raises the precise ProtocolError. So C accepts a subset of what
+ * Python accepts, builds the same values, and words no error but the replay guard's.
+ *
+ * Layout (little-endian, SPEC.md is normative):
+ *   magic "RB" | version u8 | flags u8 | type_id u16 | source_id u16 | key_id u16 |
+ *   channel_len u8 | reserved u8 | seq u64 | t_meas_ns i64 | t_pub_ns i64 |
+ *   channel | msgpack body | tag (16 B, if signed)
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <structmember.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* Bumped whenever a signature or a plan's meaning changes: Python ignores a stale build. */
+#define FASTPATH_ABI 2
+
+#define PREFIX_BYTES 12
+#define HEADER_BYTES 36
+#define TAG_BYTES 16
+#define MAX_CHANNEL_BYTES 64
+#define VERSION 1
+#define FLAG_SIGNED 0x01
+
+static PyObject *name_copy, *name_update, *name_digest;
+
+static inline uint16_t get_u16(const unsigned char *p) { return (uint16_t)(p[0] | (p[1] << 8)); }
+
+static inline uint64_t get_u64(const unsigned char *p) {
+    uint64_t value = 0;
+    for (int i = 7; i >= 0; i--) value = (value << 8) | p[i];
+    return value;
+}
+
+static inline void put_u64(unsigned char *p, uint64_t value) {
+    for (int i = 0; i < 8; i++, value >>= 8) p[i] = (unsigned char)value;
+}
+
+/* Keyed BLAKE2b of buf[0:len] through hashlib: `keyed` is a keyed state, copied so it stays
+ * reusable. Writes TAG_BYTES into tag; -1 with an exception set on failure. */
+static int compute_tag(PyObject *keyed, const char *buf, Py_ssize_t len, unsigned char *tag) {
+    PyObject *hasher = PyObject_CallMethodNoArgs(keyed, name_copy);
+    if (hasher == NULL) return -1;
+    PyObject *view = PyMemoryView_FromMemory((char *)buf, len, PyBUF_READ);
+    if (view == NULL) {
+        Py_DECREF(hasher);
+        return -1;
+    }
+    PyObject *done = PyObject_CallMethodOneArg(hasher, name_update, view);
+    Py_DECREF(view);
+    if (done == NULL) {
+        Py_DECREF(hasher);
+        return -1;
+    }
+    Py_DECREF(done);
+    PyObject *digest = PyObject_CallMethodNoArgs(hasher, name_digest);
+    Py_DECREF(hasher);
+    if (digest == NULL) return -1;
+    if (!PyBytes_Check(digest) || PyBytes_GET_SIZE(digest) != TAG_BYTES) {
+        Py_DECREF(digest);
+        PyErr_SetString(PyExc_ValueError, "the keyed hash must give a 16-byte digest");
+        return -1;
+    }
+    memcpy(tag, PyBytes_AS_STRING(digest), TAG_BYTES);
+    Py_DECREF(digest);
+    return 0;
+}
+
+/* seal(prefix, seq, t_meas_ns, t_pub_ns, channel, body, keyed) -> bytes
+ * One message from its parts; signed with the keyed hash state, or unsigned when keyed is None. */
+static PyObject *seal(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError, "seal() takes 7 arguments");
+        return NULL;
+    }
+    PyObject *prefix = args[0], *channel = args[4], *body = args[5], *keyed = args[6];
+    if (!PyBytes_Check(prefix) || PyBytes_GET_SIZE(prefix) != PREFIX_BYTES || !PyBytes_Check(channel) ||
+        !PyBytes_Check(body)) {
+        PyErr_SetString(PyExc_TypeError, "seal() needs a 12-byte prefix, channel bytes and body bytes");
+        return NULL;
+    }
+    unsigned long long seq = PyLong_AsUnsignedLongLong(args[1]);
+    if (seq == (unsigned long long)-1 && PyErr_Occurred()) return NULL;
+    long long t_meas = PyLong_AsLongLong(args[2]);
+    if (t_meas == -1 && PyErr_Occurred()) return NULL;
+    long long t_pub = PyLong_AsLongLong(args[3]);
+    if (t_pub == -1 && PyErr_Occurred()) return NULL;
+    int signed_ = keyed != Py_None;
+    Py_ssize_t channel_len = PyBytes_GET_SIZE(channel), body_len = PyBytes_GET_SIZE(body);
+    Py_ssize_t unsealed = HEADER_BYTES + channel_len + body_len;
+    PyObject *out = PyBytes_FromStringAndSize(NULL, unsealed + (signed_ ? TAG_BYTES : 0));
+    if (out == NULL) return NULL;
+    unsigned char *p = (unsigned char *)PyBytes_AS_STRING(out);
+    memcpy(p, PyBytes_AS_STRING(prefix), PREFIX_BYTES);
+    put_u64(p + 12, (uint64_t)seq);
+    put_u64(p + 20, (uint64_t)t_meas);
+    put_u64(p + 28, (uint64_t)t_pub);
+    memcpy(p + HEADER_BYTES, PyBytes_AS_STRING(channel), channel_len);
+    memcpy(p + HEADER_BYTES + channel_len, PyBytes_AS_STRING(body), body_len);
+    if (signed_ && compute_tag(keyed, (const char *)p, unsealed, p + unsealed) < 0) {
+        Py_DECREF(out);
+        return NULL;
+    }
+    return out;
+}
+
+/* A message that passed every check open() makes, located in its datagram. */
+typedef struct {
+    const unsigned char *p;
+    Py_ssize_t size, body_start, body_end;
+    unsigned channel_len;
+} Located;
+
+/* The checks of Codec.open: 1 authentic and well-formed, 0 not (Python words why), -1 error. */
+static int locate(PyObject *data, PyObject *keyed_by_id, Py_ssize_t max_bytes, Located *m) {
+    if (!PyBytes_CheckExact(data)) return 0;
+    Py_ssize_t size = PyBytes_GET_SIZE(data);
+    const unsigned char *p = (const unsigned char *)PyBytes_AS_STRING(data);
+    if (size < HEADER_BYTES || size > max_bytes || p[0] != 'R' || p[1] != 'B' || p[2] != VERSION) return 0;
+    unsigned flags = p[3], channel_len = p[10];
+    if ((flags & ~FLAG_SIGNED) || channel_len == 0 || channel_len > MAX_CHANNEL_BYTES) return 0;
+    Py_ssize_t body_start = HEADER_BYTES + channel_len, body_end = size;
+    if (flags & FLAG_SIGNED) {
+        /* Signed messages in the unsigned mode are accepted unverified: Python's path does that. */
+        body_end = size - TAG_BYTES;
+        if (body_end <= body_start || keyed_by_id == Py_None) return 0;
+        PyObject *key_id = PyLong_FromLong(get_u16(p + 8));
+        if (key_id == NULL) return -1;
+        PyObject *keyed = PyDict_GetItemWithError(keyed_by_id, key_id);
+        Py_DECREF(key_id);
+        if (keyed == NULL) return PyErr_Occurred() ? -1 : 0;
+        unsigned char tag[TAG_BYTES];
+        if (compute_tag(keyed, (const char *)p, body_end, tag) < 0) return -1;
+        unsigned char diff = 0; /* constant time, as hmac.compare_digest */
+        for (int i = 0; i < TAG_BYTES; i++) diff |= tag[i] ^ p[body_end + i];
+        if (diff) return 0;
+    } else if (keyed_by_id != Py_None || body_start >= body_end) {
+        return 0;
+    }
+    for (Py_ssize_t i = HEADER_BYTES; i < body_start; i++) {
+        if (p[i] >= 0x80) return 0;
+    }
+    *m = (Located){p, size, body_start, body_end, channel_len};
+    return 1;
+}
+
+static PyObject *channel_of(const Located *m) {
+    return PyUnicode_DecodeASCII((const char *)m->p + HEADER_BYTES, m->channel_len, NULL);
+}
+
+/* A tuple subclass instance (NamedTuple) from n new references; steals them, NULLs included. */
+static PyObject *new_record(PyTypeObject *cls, PyObject **items, Py_ssize_t n) {
+    PyObject *record = cls->tp_alloc(cls, n);
+    int failed = record == NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (items[i] == NULL) failed = 1;
+        if (record != NULL) {
+            PyTuple_SET_ITEM(record, i, items[i]); /* NULL items are fine for the dealloc below */
+        } else {
+            Py_XDECREF(items[i]);
+        }
+    }
+    if (failed) {
+        Py_XDECREF(record);
+        return NULL;
+    }
+    return record;
+}
+
+static int check_keys_arg(PyObject *keyed_by_id) {
+    if (keyed_by_id != Py_None && !PyDict_Check(keyed_by_id)) {
+        PyErr_SetString(PyExc_TypeError, "keyed_by_id must be a dict of keyed hash states or None");
+        return -1;
+    }
+    return 0;
+}
+
+/* open(data, opened_cls, keyed_by_id, max_message_bytes) -> Opened | None
+ * keyed_by_id: dict of key id -> keyed hash state, or None for the explicit unsigned mode. */
+static PyObject *open_message(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "open() takes 4 arguments");
+        return NULL;
+    }
+    PyObject *data = args[0];
+    if (!PyType_Check(args[1]) || check_keys_arg(args[2]) < 0) {
+        PyErr_SetString(PyExc_TypeError, "open() needs the Opened class and a dict of keyed states or None");
+        return NULL;
+    }
+    Py_ssize_t max_bytes = PyLong_AsSsize_t(args[3]);
+    if (max_bytes == -1 && PyErr_Occurred()) return NULL;
+    Located m;
+    int status = locate(data, args[2], max_bytes, &m);
+    if (status < 0) return NULL;
+    if (status == 0) Py_RETURN_NONE;
+    PyObject *body = NULL, *whole = PyMemoryView_FromObject(data);
+    if (whole != NULL) {
+        body = PySequence_GetSlice(whole, m.body_start, m.body_end);
+        Py_DECREF(whole);
+    }
+    PyObject *fields[7] = {
+        PyLong_FromLong(get_u16(m.p + 4)),
+        PyLong_FromLong(get_u16(m.p + 6)),
+        PyLong_FromUnsignedLongLong(get_u64(m.p + 12)),
+        PyLong_FromLongLong((long long)get_u64(m.p + 20)),
+        PyLong_FromLongLong((long long)get_u64(m.p + 28)),
+        channel_of(&m),
+        body,
+    };
+    return new_record((PyTypeObject *)args[1], fields, 7);
+}
+
+/* -- typed decode ------------------------------------------------------------------------------
+ * A plan is (cls, kinds, subplans): kinds is bytes with one code per field, subplans a tuple with
+ * the plan of each 'R' field's record type (None elsewhere). Codes:
+ *   f float (an int passes too; floats must be finite)  i int  b bool  s str  y bytes
+ *   F tuple of finite floats/ints   I B S Y tuple of int / bool / str / bytes   R tuple of records
+ * A decoded value is 1, "take the Python decoder" 0, an error -1. */
+
+static int is_number(PyObject *value) {
+    if (PyFloat_Check(value)) return isfinite(PyFloat_AS_DOUBLE(value));
+    return PyLong_Check(value);
+}
+
+static int scalar_ok(char kind, PyObject *value) {
+    switch (kind) {
+        case 'f': return is_number(value);
+        case 'i': return PyLong_Check(value);
+        case 'b': return PyBool_Check(value);
+        case 's': return PyUnicode_Check(value);
+        case 'y': return PyBytes_Check(value);
+        default: return 0;
+    }
+}
+
+static int decode_into(PyObject *plan, PyObject *raw, PyObject **out);
+
+static int sequence_ok(char kind, PyObject *raw) {
+    char item_kind = kind == 'F' ? 'f' : (char)(kind - 'A' + 'a');  /* I -> i, B -> b, ... */
+    Py_ssize_t n = PyTuple_GET_SIZE(raw);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!scalar_ok(item_kind, PyTuple_GET_ITEM(raw, i))) return 0;
+    }
+    return 1;
+}
+
+static int decode_records(PyObject *plan, PyObject *raw, PyObject **out) {
+    Py_ssize_t n = PyTuple_GET_SIZE(raw);
+    PyObject *records = PyTuple_New(n);
+    if (records == NULL) return -1;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *record;
+        int status = decode_into(plan, PyTuple_GET_ITEM(raw, i), &record);
+        if (status <= 0) {
+            Py_DECREF(records);
+            return status;
+        }
+        PyTuple_SET_ITEM(records, i, record);
+    }
+    *out = records;
+    return 1;
+}
+
+static int decode_into(PyObject *plan, PyObject *raw, PyObject **out) {
+    if (!PyTuple_CheckExact(plan) || PyTuple_GET_SIZE(plan) != 3) {
+        PyErr_SetString(PyExc_TypeError, "a plan is (cls, kinds, subplans)");
+        return -1;
+    }
+    PyObject *cls_object = PyTuple_GET_ITEM(plan, 0);
+    PyObject *kinds = PyTuple_GET_ITEM(plan, 1), *subplans = PyTuple_GET_ITEM(plan, 2);
+    if (!PyType_Check(cls_object) || !PyType_IsSubtype((PyTypeObject *)cls_object, &PyTuple_Type) ||
+        !PyBytes_Check(kinds) || !PyTuple_Check(subplans) || PyTuple_GET_SIZE(subplans) != PyBytes_GET_SIZE(kinds)) {
+        PyErr_SetString(PyExc_TypeError, "a plan is (cls, kinds, subplans)");
+        return -1;
+    }
+    Py_ssize_t n = PyBytes_GET_SIZE(kinds);
+    const char *kind = PyBytes_AS_STRING(kinds);
+    if (!PyTuple_CheckExact(raw) || PyTuple_GET_SIZE(raw) != n) return 0;
+    PyTypeObject *cls = (PyTypeObject *)cls_object;
+    PyObject *msg = cls->tp_alloc(cls, n); /* zeroed: items not yet set are NULL */
+    if (msg == NULL) return -1;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *value = PyTuple_GET_ITEM(raw, i), *converted = NULL;
+        int status;
+        if (kind[i] >= 'a') {
+            status = scalar_ok(kind[i], value);
+        } else if (!PyTuple_CheckExact(value)) {
+            status = 0;
+        } else if (kind[i] == 'R') {
+            status = decode_records(PyTuple_GET_ITEM(subplans, i), value, &converted);
+        } else {
+            status = sequence_ok(kind[i], value);
+        }
+        if (status <= 0) {
+            Py_DECREF(msg);  /* items not yet set are NULL, which tuple dealloc skips */
+            return status;
+        }
+        if (converted == NULL) {
+            Py_INCREF(value);
+            converted = value;
+        }
+        PyTuple_SET_ITEM(msg, i, converted);
+    }
+    *out = msg;
+    return 1;
+}
+
+/* decode(plan, raw) -> message | None */
+static PyObject *decode(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "decode() takes 2 arguments");
+        return NULL;
+    }
+    PyObject *msg;
+    int status = decode_into(args[0], args[1], &msg);
+    if (status < 0) return NULL;
+    if (status == 0) Py_RETURN_NONE;
+    return msg;
+}
+
+/* -- replay protection -------------------------------------------------------------------------
+ * protocol/replay.py's ReplayGuard, same rules, same errors: per (source id, channel) stream the
+ * highest sequence accepted and a 64-message bitmap behind it, plus the freshness window. Streams
+ * live in a slot array on a least-recently-used list; a dict finds a stream's slot by its key. */
+
+#define WINDOW 64
+#define RESTART_JUMP 1000000
+
+typedef struct {
+    PyObject *key; /* (source_id, channel); NULL for a free slot */
+    uint64_t first, highest, seen;
+    Py_ssize_t older, newer; /* LRU neighbours, -1 at the ends; `newer` links free slots */
+} Stream;
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *limits;
+    long long max_age_ns, max_future_ns;
+    Py_ssize_t max_streams, capacity, count, oldest, newest, free;
+    PyObject *slot_of; /* key -> slot index (int) */
+    Stream *streams;
+} ReplayGuardObject;
+
+static PyObject *ProtocolError, *reason_replay, *reason_stale, *reason_future;
+static PyTypeObject ReplayGuardType;
+
+static int limit_of(PyObject *limits, const char *name, long long *out) {
+    PyObject *value = PyObject_GetAttrString(limits, name);
+    if (value == NULL) return -1;
+    *out = PyLong_AsLongLong(value);
+    Py_DECREF(value);
+    return (*out == -1 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int guard_init(ReplayGuardObject *self, PyObject *args, PyObject *kwargs) {
+    static char *keywords[] = {"limits", NULL};
+    PyObject *limits;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "O:ReplayGuard", keywords, &limits)) return -1;
+    long long max_streams;
+    if (limit_of(limits, "max_age_ns", &self->max_age_ns) < 0 || limit_of(limits, "max_future_ns", &self->max_future_ns) < 0 ||
+        limit_of(limits, "max_streams", &max_streams) < 0)
+        return -1;
+    if (max_streams < 1) {
+        PyErr_SetString(PyExc_ValueError, "max_streams must be at least 1");
+        return -1;
+    }
+    Py_XSETREF(self->limits, Py_NewRef(limits));
+    Py_XSETREF(self->slot_of, PyDict_New());
+    if (self->slot_of == NULL) return -1;
+    for (Py_ssize_t i = 0; i < self->capacity; i++) Py_CLEAR(self->streams[i].key);
+    PyMem_Free(self->streams);
+    self->streams = NULL;
+    self->max_streams = (Py_ssize_t)max_streams;
+    self->capacity = self->count = 0;
+    self->oldest = self->newest = self->free = -1;
+    return 0;
+}
+
+static void guard_dealloc(ReplayGuardObject *self) {
+    PyObject_GC_UnTrack(self);
+    for (Py_ssize_t i = 0; i < self->capacity; i++) Py_XDECREF(self->streams[i].key);
+    PyMem_Free(self->streams);
+    Py_XDECREF(self->slot_of);
+    Py_XDECREF(self->limits);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int guard_traverse(ReplayGuardObject *self, visitproc visit, void *arg) {
+    Py_VISIT(self->limits);
+    Py_VISIT(self->slot_of);
+    return 0;
+}
+
+static void unlink_stream(ReplayGuardObject *self, Py_ssize_t i) {
+    Stream *s = &self->streams[i];
+    if (s->older >= 0) self->streams[s->older].newer = s->newer; else self->oldest = s->newer;
+    if (s->newer >= 0) self->streams[s->newer].older = s->older; else self->newest = s->older;
+}
+
+static void link_newest(ReplayGuardObject *self, Py_ssize_t i) {
+    Stream *s = &self->streams[i];
+    s->older = self->newest;
+    s->newer = -1;
+    if (self->newest >= 0) self->streams[self->newest].newer = i; else self->oldest = i;
+    self->newest = i;
+}
+
+/* Drop slot i's stream: off the list, out of the dict, onto the free list. */
+static int drop_stream(ReplayGuardObject *self, Py_ssize_t i) {
+    Stream *s = &self->streams[i];
+    unlink_stream(self, i);
+    int status = PyDict_DelItem(self->slot_of, s->key);
+    Py_CLEAR(s->key);
+    s->newer = self->free;
+    self->free = i;
+    self->count--;
+    return status;
+}
+
+static Py_ssize_t new_stream(ReplayGuardObject *self, PyObject *key, uint64_t seq) {
+    if (self->count >= self->max_streams && drop_stream(self, self->oldest) < 0) return -1;
+    if (self->free < 0) { /* grow: double, up to max_streams */
+        Py_ssize_t capacity = self->capacity ? self->capacity * 2 : 16;
+        if (capacity > self->max_streams) capacity = self->max_streams;
+        Stream *grown = PyMem_Realloc(self->streams, (size_t)capacity * sizeof(Stream));
+        if (grown == NULL) {
+            PyErr_NoMemory();
+            return -1;
+        }
+        self->streams = grown;
+        for (Py_ssize_t i = capacity - 1; i >= self->capacity; i--) {
+            grown[i].key = NULL;
+            grown[i].newer = self->free;
+            self->free = i;
+        }
+        self->capacity = capacity;
+    }
+    Py_ssize_t i = self->free;
+    PyObject *slot = PyLong_FromSsize_t(i);
+    if (slot == NULL) return -1;
+    int status = PyDict_SetItem(self->slot_of, key, slot);
+    Py_DECREF(slot);
+    if (status < 0) return -1;
+    Stream *s = &self->streams[i];
+    self->free = s->newer;
+    *s = (Stream){Py_NewRef(key), seq, seq, 1, -1, -1};
+    link_newest(self, i);
+    self->count++;
+    return i;
+}
+
+static void reject(PyObject *reason, long source_id, PyObject *detail) {
+    if (detail == NULL) return;
+    PyObject *error = PyObject_CallFunction(ProtocolError, "OOl", reason, detail, source_id);
+    Py_DECREF(detail);
+    if (error != NULL) {
+        PyErr_SetObject((PyObject *)Py_TYPE(error), error);
+        Py_DECREF(error);
+    }
+}
+
+static void reject_age(PyObject *reason, long source_id, const char *format, __int128 age_ns) {
+    char *seconds = PyOS_double_to_string((double)age_ns / 1e9, 'f', 3, 0, NULL);
+    if (seconds == NULL) return;
+    reject(reason, source_id, PyUnicode_FromFormat(format, seconds));
+    PyMem_Free(seconds);
+}
+
+/* ReplayGuard.check's rules. has_now = 0 skips freshness. Sets *lost; -1 with ProtocolError. */
+static int guard_check(ReplayGuardObject *self, long source_id, PyObject *key, uint64_t seq, int64_t t_pub_ns,
+                       int has_now, int64_t now_ns, long long *lost) {
+    if (self->slot_of == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ReplayGuard was not initialised");
+        return -1;
+    }
+    if (has_now) {
+        if ((__int128)t_pub_ns < (__int128)now_ns - self->max_age_ns) {
+            reject_age(reason_stale, source_id, "published %s s ago", (__int128)now_ns - t_pub_ns);
+            return -1;
+        }
+        if ((__int128)t_pub_ns > (__int128)now_ns + self->max_future_ns) {
+            reject_age(reason_future, source_id, "published %s s ahead", (__int128)t_pub_ns - now_ns);
+            return -1;
+        }
+    }
+    PyObject *slot = PyDict_GetItemWithError(self->slot_of, key);
+    if (slot == NULL) {
+        if (PyErr_Occurred() || new_stream(self, key, seq) < 0) return -1;
+        *lost = 0;
+        return 0;
+    }
+    Py_ssize_t i = PyLong_AsSsize_t(slot);
+    Stream *s = &self->streams[i];
+    if (i != self->newest) { /* least recently used goes first when full, never an active stream */
+        unlink_stream(self, i);
+        link_newest(self, i);
+    }
+    if (seq > s->highest) {
+        uint64_t ahead = seq - s->highest;
+        s->seen = ahead < WINDOW ? (s->seen << ahead) | 1 : 1;
+        s->highest = seq;
+        /* a jump of a million or more is a restarted publisher, not a million lost messages */
+        *lost = ahead <= RESTART_JUMP ? (long long)ahead - 1 : 0;
+        return 0;
+    }
+    uint64_t behind = s->highest - seq;
+    if (behind >= WINDOW) {
+        reject(reason_replay, source_id, PyUnicode_FromFormat("seq %llu is %llu behind", (unsigned long long)seq,
+                                                              (unsigned long long)behind));
+        return -1;
+    }
+    uint64_t bit = (uint64_t)1 << behind;
+    if (s->seen & bit) {
+        reject(reason_replay, source_id, PyUnicode_FromFormat("seq %llu already seen", (unsigned long long)seq));
+        return -1;
+    }
+    s->seen |= bit;
+    *lost = seq > s->first ? -1 : 0;
+    return 0;
+}
+
+static int as_u64(PyObject *value, uint64_t *out) {
+    *out = PyLong_AsUnsignedLongLong(value);
+    return (*out == (uint64_t)-1 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int as_i64(PyObject *value, int64_t *out) {
+    *out = PyLong_AsLongLong(value);
+    return (*out == -1 && PyErr_Occurred()) ? -1 : 0;
+}
+
+/* check(source_id, channel, seq, t_pub_ns, now_ns) -> lost; as protocol.replay.ReplayGuard.check */
+static PyObject *guard_check_method(ReplayGuardObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5) {
+        PyErr_SetString(PyExc_TypeError, "check() takes 5 arguments");
+        return NULL;
+    }
+    long source_id = PyLong_AsLong(args[0]);
+    uint64_t seq;
+    int64_t t_pub_ns, now_ns = 0;
+    if ((source_id == -1 && PyErr_Occurred()) || as_u64(args[2], &seq) < 0 || as_i64(args[3], &t_pub_ns) < 0 ||
+        (args[4] != Py_None && as_i64(args[4], &now_ns) < 0))
+        return NULL;
+    PyObject *key = PyTuple_Pack(2, args[0], args[1]);
+    if (key == NULL) return NULL;
+    long long lost;
+    int status = guard_check(self, source_id, key, seq, t_pub_ns, args[4] != Py_None, now_ns, &lost);
+    Py_DECREF(key);
+    return status < 0 ? NULL : PyLong_FromLongLong(lost);
+}
+
+static PyObject *guard_forget(ReplayGuardObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "forget() takes 2 arguments");
+        return NULL;
+    }
+    PyObject *key = PyTuple_Pack(2, args[0], args[1]);
+    if (key == NULL) return NULL;
+    PyObject *slot = self->slot_of == NULL ? NULL : PyDict_GetItemWithError(self->slot_of, key);
+    Py_DECREF(key);
+    if (slot == NULL) {
+        if (PyErr_Occurred()) return NULL;
+        Py_RETURN_NONE;
+    }
+    if (drop_stream(self, PyLong_AsSsize_t(slot)) < 0) return NULL;
+    Py_RETURN_NONE;
+}
+
+static Py_ssize_t guard_len(ReplayGuardObject *self) { return self->count; }
+
+static PyMethodDef guard_methods[] = {
+    {"check", (PyCFunction)(void (*)(void))guard_check_method, METH_FASTCALL,
+     "check(source_id, channel, seq, t_pub_ns, now_ns) -> lost; raises ProtocolError"},
+    {"forget", (PyCFunction)(void (*)(void))guard_forget, METH_FASTCALL, "forget(source_id, channel)"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyMemberDef guard_members[] = {
+    {"limits", T_OBJECT_EX, offsetof(ReplayGuardObject, limits), READONLY, "the ReplayLimits in force"},
+    {NULL, 0, 0, 0, NULL},
+};
+
+static PySequenceMethods guard_as_sequence = {.sq_length = (lenfunc)guard_len};
+
+static PyTypeObject ReplayGuardType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "protocol._fastpath.ReplayGuard",
+    .tp_basicsize = sizeof(ReplayGuardObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_BASETYPE | Py_TPFLAGS_HAVE_GC,
+    .tp_doc = "ReplayGuard(limits): protocol.replay's replay and freshness rules, in C",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)guard_init,
+    .tp_dealloc = (destructor)guard_dealloc,
+    .tp_traverse = (traverseproc)guard_traverse,
+    .tp_methods = guard_methods,
+    .tp_members = guard_members,
+    .tp_as_sequence = &guard_as_sequence,
+};
+
+/* -- the whole receive path ----------------------------------------------------------------------
+ * Receiver(keyed_by_id, max_bytes, routes, replay, envelope_cls, unpack): one per Bus, holding what
+ * the bus's receive path consults. routes maps channel -> route with attributes type_id, plan and
+ * freshness_exempt (rascal.bus._Route); replay is a ReplayGuard of this module; unpack(body) is
+ * msgpack's unpackb with the codec's options.
+ *
+ * accept(data, recv_ns, recv_local_ns, check_freshness)
+ *   -> (route, msg, envelope, lost)  a message for a subscribed channel, checked, numbered, decoded
+ *   -> False                         authentic, but for a channel nobody here subscribed to
+ *   -> None                          anything else: Python's path decides (and words the error)
+ * Raises ProtocolError only for what the replay guard refuses, and asks the guard last, so that
+ * a message left to Python has left no trace in the guard that Python's path would trip over. */
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *keyed_by_id, *routes, *replay, *envelope_cls, *unpack;
+    Py_ssize_t max_bytes;
+} ReceiverObject;
+
+static PyObject *name_type_id, *name_plan, *name_freshness_exempt;
+
+static int receiver_init(ReceiverObject *self, PyObject *args, PyObject *kwargs) {
+    static char *keywords[] = {"keyed_by_id", "max_bytes", "routes", "replay", "envelope_cls", "unpack", NULL};
+    PyObject *keyed_by_id, *routes, *replay, *envelope_cls, *unpack;
+    Py_ssize_t max_bytes;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OnO!O!O!O:Receiver", keywords, &keyed_by_id, &max_bytes,
+                                     &PyDict_Type, &routes, &ReplayGuardType, &replay, &PyType_Type, &envelope_cls,
+                                     &unpack) ||
+        check_keys_arg(keyed_by_id) < 0)
+        return -1;
+    Py_XSETREF(self->keyed_by_id, Py_NewRef(keyed_by_id));
+    Py_XSETREF(self->routes, Py_NewRef(routes));
+    Py_XSETREF(self->replay, Py_NewRef(replay));
+    Py_XSETREF(self->envelope_cls, Py_NewRef(envelope_cls));
+    Py_XSETREF(self->unpack, Py_NewRef(unpack));
+    self->max_bytes = max_bytes;
+    return 0;
+}
+
+static int receiver_traverse(ReceiverObject *self, visitproc visit, void *arg) {
+    Py_VISIT(self->keyed_by_id);
+    Py_VISIT(self->routes);
+    Py_VISIT(self->replay);
+    Py_VISIT(self->envelope_cls);
+    Py_VISIT(self->unpack);
+    return 0;
+}
+
+static int receiver_clear(ReceiverObject *self) {
+    Py_CLEAR(self->keyed_by_id);
+    Py_CLEAR(self->routes);
+    Py_CLEAR(self->replay);
+    Py_CLEAR(self->envelope_cls);
+    Py_CLEAR(self->unpack);
+    return 0;
+}
+
+static void receiver_dealloc(ReceiverObject *self) {
+    PyObject_GC_UnTrack(self);
+    receiver_clear(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static long route_long(PyObject *route, PyObject *name) {
+    PyObject *value = PyObject_GetAttr(route, name);
+    if (value == NULL) return -1;
+    long result = PyLong_AsLong(value);
+    Py_DECREF(value);
+    return result;
+}
+
+/* The body, unpacked and decoded to the route's type: 1, or 0 for "leave it to Python", -1 error. */
+static int decode_for(ReceiverObject *self, PyObject *route, const Located *m, PyObject **msg) {
+    PyObject *plan = PyObject_GetAttr(route, name_plan);
+    if (plan == NULL) return -1;
+    /* unpackb copies what it keeps, so a view of the datagram for the length of the call is safe */
+    PyObject *body = PyMemoryView_FromMemory((char *)m->p + m->body_start, m->body_end - m->body_start, PyBUF_READ);
+    PyObject *raw = body == NULL ? NULL : PyObject_CallOneArg(self->unpack, body);
+    Py_XDECREF(body);
+    int status;
+    if (raw == NULL) {
+        int ours = PyErr_ExceptionMatches(PyExc_Exception) && !PyErr_ExceptionMatches(PyExc_MemoryError);
+        if (ours) PyErr_Clear(); /* a body msgpack refuses: BAD_BODY, worded by Python */
+        status = ours ? 0 : -1;
+    } else {
+        status = decode_into(plan, raw, msg);
+        Py_DECREF(raw);
+    }
+    Py_DECREF(plan);
+    return status;
+}
+
+static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "accept() takes 4 arguments");
+        return NULL;
+    }
+    if (self->routes == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "Receiver was not initialised");
+        return NULL;
+    }
+    int64_t recv_ns;
+    if (as_i64(args[1], &recv_ns) < 0) return NULL;
+    int check_freshness = PyObject_IsTrue(args[3]);
+    if (check_freshness < 0) return NULL;
+    Located m;
+    int status = locate(args[0], self->keyed_by_id, self->max_bytes, &m);
+    if (status <= 0) return status < 0 ? NULL : Py_NewRef(Py_None);
+    PyObject *channel = channel_of(&m);
+    if (channel == NULL) return NULL;
+    PyObject *result = NULL, *msg = NULL, *key = NULL, *route = PyDict_GetItemWithError(self->routes, channel);
+    if (route == NULL) {
+        result = PyErr_Occurred() ? NULL : Py_NewRef(Py_False);
+        goto done;
+    }
+    Py_INCREF(route);
+    long type_id = get_u16(m.p + 4), source_id = get_u16(m.p + 6);
+    long expected = route_long(route, name_type_id);
+    if (expected == -1 && PyErr_Occurred()) goto done;
+    status = expected == type_id ? decode_for(self, route, &m, &msg) : 0; /* else WRONG_TYPE, by Python */
+    if (status <= 0) {
+        result = status < 0 ? NULL : Py_NewRef(Py_None);
+        goto done;
+    }
+    long exempt = route_long(route, name_freshness_exempt);
+    if (exempt == -1 && PyErr_Occurred()) goto done;
+    PyObject *source = PyLong_FromLong(source_id);
+    key = source == NULL ? NULL : PyTuple_Pack(2, source, channel);
+    Py_XDECREF(source);
+    if (key == NULL) goto done;
+    uint64_t seq = get_u64(m.p + 12);
+    int64_t t_pub_ns = (int64_t)get_u64(m.p + 28);
+    long long lost;
+    if (guard_check((ReplayGuardObject *)self->replay, source_id, key, seq, t_pub_ns, check_freshness && !exempt,
+                    recv_ns, &lost) < 0)
+        goto done;
+    PyObject *fields[9] = {
+        Py_NewRef(channel),
+        PyLong_FromLong(source_id),
+        PyLong_FromUnsignedLongLong(seq),
+        PyLong_FromLongLong((long long)get_u64(m.p + 20)),
+        PyLong_FromLongLong(t_pub_ns),
+        Py_NewRef(args[1]),
+        PyLong_FromLong(type_id),
+        PyLong_FromSsize_t(m.size),
+        Py_NewRef(args[2]),
+    };
+    PyObject *envelope = new_record((PyTypeObject *)self->envelope_cls, fields, 9);
+    PyObject *lost_count = envelope == NULL ? NULL : PyLong_FromLongLong(lost);
+    if (lost_count != NULL) result = PyTuple_Pack(4, route, msg, envelope, lost_count);
+    Py_XDECREF(envelope);
+    Py_XDECREF(lost_count);
+done:
+    Py_XDECREF(key);
+    Py_XDECREF(msg);
+    Py_XDECREF(route);
+    Py_DECREF(channel);
+    return result;
+}
+
+static PyMethodDef receiver_methods[] = {
+    {"accept", (PyCFunction)(void (*)(void))receiver_accept, METH_FASTCALL,
+     "accept(data, recv_ns, recv_local_ns, check_freshness) -> (route, msg, envelope, lost) | False | None"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject ReceiverType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "protocol._fastpath.Receiver",
+    .tp_basicsize = sizeof(ReceiverObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_doc = "Receiver(keyed_by_id, max_bytes, routes, replay, envelope_cls, unpack): a bus's receive path",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)receiver_init,
+    .tp_dealloc = (destructor)receiver_dealloc,
+    .tp_traverse = (traverseproc)receiver_traverse,
+    .tp_clear = (inquiry)receiver_clear,
+    .tp_methods = receiver_methods,
+};
+
+static PyMethodDef methods[] = {
+    {"seal", (PyCFunction)(void (*)(void))seal, METH_FASTCALL, "seal(prefix, seq, t_meas_ns, t_pub_ns, channel, body, keyed)"},
+    {"open", (PyCFunction)(void (*)(void))open_message, METH_FASTCALL, "open(data, opened_cls, keyed_by_id, max_bytes)"},
+    {"decode", (PyCFunction)(void (*)(void))decode, METH_FASTCALL, "decode(plan, raw) -> message | None"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module_def = {
+    .m_base = PyModuleDef_HEAD_INIT, .m_name = "protocol._fastpath", .m_size = -1, .m_methods = methods};
+
+PyMODINIT_FUNC PyInit__fastpath(void) {
+    name_copy = PyUnicode_InternFromString("copy");
+    name_update = PyUnicode_InternFromString("update");
+    name_digest = PyUnicode_InternFromString("digest");
+    name_type_id = PyUnicode_InternFromString("type_id");
+    name_plan = PyUnicode_InternFromString("plan");
+    name_freshness_exempt = PyUnicode_InternFromString("freshness_exempt");
+    if (!name_copy || !name_update || !name_digest || !name_type_id || !name_plan || !name_freshness_exempt) return NULL;
+    PyObject *errors = PyImport_ImportModule("protocol.errors");
+    if (errors == NULL) return NULL;
+    ProtocolError = PyObject_GetAttrString(errors, "ProtocolError");
+    PyObject *reasons = PyObject_GetAttrString(errors, "Reason");
+    Py_DECREF(errors);
+    if (ProtocolError == NULL || reasons == NULL) return NULL;
+    reason_replay = PyObject_GetAttrString(reasons, "REPLAY");
+    reason_stale = PyObject_GetAttrString(reasons, "STALE");
+    reason_future = PyObject_GetAttrString(reasons, "FUTURE");
+    Py_DECREF(reasons);
+    if (!reason_replay || !reason_stale || !reason_future) return NULL;
+    if (PyType_Ready(&ReplayGuardType) < 0 || PyType_Ready(&ReceiverType) < 0) return NULL;
+    PyObject *module = PyModule_Create(&module_def);
+    if (module == NULL) return NULL;
+    if (PyModule_AddIntConstant(module, "ABI", FASTPATH_ABI) < 0 ||
+        PyModule_AddObjectRef(module, "ReplayGuard", (PyObject *)&ReplayGuardType) < 0 ||
+        PyModule_AddObjectRef(module, "Receiver", (PyObject *)&ReceiverType) < 0) {
+        Py_DECREF(module);
+        return NULL;
+    }
+    return module;
+}

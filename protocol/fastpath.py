@@ -1,0 +1,41 @@
+"""Which implementation runs the per-message hot path: the C extension, or its Python twin.
+
+``protocol/_fastpath.c`` seals, opens and decodes the common case (a well-formed, authentic
+message of this build's layout) and hands everything else back to the Python code in codec.py
+and schema.py, which stays the reference. ``native`` is that extension, or None where it was not
+built (no compiler at install time), is a stale build, or ``RASCAL_PURE_PYTHON=1`` asks for
+Python (the tests run both ways).
+"""
+
+from __future__ import annotations
+
+import os
+from types import ModuleType
+
+# Must equal FASTPATH_ABI in _fastpath.c: a build from older sources is not used.
+ABI = 2
+PURE_PYTHON_ENV = "RASCAL_PURE_PYTHON"
+
+
+def _load() -> ModuleType | None:
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return None
+    try:
+        from protocol import _fastpath
+    except ImportError:
+        return None
+    return _fastpath if getattr(_fastpath, "ABI", None) == ABI else None
+
+
+native = _load()
+
+
+def describe() -> str:
+    """One line for status output and benchmark headers."""
+    if native is not None:
+        return "C fast path"
+    return (
+        f"pure Python ({PURE_PYTHON_ENV} set)"
+        if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0")
+        else ("pure Python (C fast path not built)")
+    )
