@@ -11,7 +11,7 @@ setup(
             "protocol._fastpath",
             ["protocol/_fastpath.c"],
             optional=True,
-            extra_compile_args=["-O2", "-Wall", "-Wextra", "-Wno-unused-parameter"],
+            extra_compile_args=["-O3", "-Wall", "-Wextra", "-Wno-unused-parameter"],
         )
     ]
 )

@@ -38,7 +38,7 @@ class Keyring:
 
     keys: dict[int, bytes]
     active: int
-    # Keyed hash states by key id, made once; copy() one before use (the C fast path does too).
+    # Keyed hash states by key id, made once; copy() one before use.
     keyed: dict[int, Any] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

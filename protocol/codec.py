@@ -80,9 +80,10 @@ class Codec:
         self._packer = msgpack.Packer(use_bin_type=True)
         self._flags = FLAG_SIGNED if keyring else 0
         self._key_id = keyring.active if keyring else 0
-        # What the C fast path signs with and verifies against (None: the unsigned mode).
-        self._signing_state = keyring.keyed[keyring.active] if keyring else None
-        self.verifying_states = keyring.keyed if keyring else None
+        # What the C fast path signs with and verifies against, by key id (None: unsigned mode).
+        macs = {key_id: native.Mac(key) for key_id, key in keyring.keys.items()} if keyring and native else None
+        self._signing_mac = macs[keyring.active] if keyring and macs else None
+        self.verifying_macs = macs
         # The first 12 header bytes are fixed per (type, channel, source): packed once.
         self._prefixes: dict[tuple[type, bytes, int], bytes] = {}
 
@@ -96,7 +97,7 @@ class Codec:
                 MAGIC, VERSION, self._flags, type_id, source_id, self._key_id, len(channel), 0
             )
         if native is not None:
-            data = native.seal(prefix, seq, t_meas_ns, t_pub_ns, channel, self._packer.pack(msg), self._signing_state)
+            data = native.seal(prefix, seq, t_meas_ns, t_pub_ns, channel, self._packer.pack(msg), self._signing_mac)
         else:
             data = b"".join((prefix, HEADER_TIMES.pack(seq, t_meas_ns, t_pub_ns), channel, self._packer.pack(msg)))
             if self.keyring is not None:
@@ -108,7 +109,7 @@ class Codec:
     def open(self, data: bytes) -> Opened:
         """Check framing and authenticity of one complete message; raise ProtocolError if bad."""
         if native is not None:
-            opened = native.open(data, Opened, self.verifying_states, self.max_message_bytes)
+            opened = native.open(data, Opened, self.verifying_macs, self.max_message_bytes)
             if opened is not None:
                 return opened
             # Refused or unusual (signed in the unsigned mode, not bytes): Python says which.

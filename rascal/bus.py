@@ -8,15 +8,12 @@ datagram; the module never sees it.
 
 from __future__ import annotations
 
-import functools
 import itertools
 import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
-
-import msgpack
 
 from protocol import channels
 from protocol.auth import Keyring, default_keyring
@@ -45,8 +42,6 @@ FRESHNESS_EXEMPT = frozenset({channels.TIME_SYNC})
 # Channels stamped on arrival by the kernel: time sync, whose accuracy the asymmetric wake-up
 # latency of the two ends (~50-100 us on loopback) would otherwise limit.
 KERNEL_TIMESTAMPED = frozenset({channels.TIME_SYNC})
-# The C fast path unpacks bodies as codec.unpack_body does (its other options are msgpack's defaults).
-_unpack = functools.partial(msgpack.unpackb, use_list=False)
 
 
 @dataclass
@@ -133,7 +128,7 @@ class Bus:
         # The C twin of _accept (protocol/_fastpath.c), for every plain datagram; None: Python only.
         self._receiver = (
             native.Receiver(
-                self.codec.verifying_states, self.codec.max_message_bytes, self._subs, self.replay, Envelope, _unpack
+                self.codec.verifying_macs, self.codec.max_message_bytes, self._subs, self.replay, Envelope
             )
             if native is not None and isinstance(self.replay, native.ReplayGuard)
             else None

@@ -9,6 +9,7 @@ machines without a compiler run stays tested too.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -49,7 +50,22 @@ def test_the_fast_path_is_built_where_a_compiler_is() -> None:
     assert fastpath.describe() == "C fast path"
 
 
-# -- seal and open ---------------------------------------------------------------------------
+# -- tags, seal and open ----------------------------------------------------------------------
+
+
+@needs_native
+def test_the_c_tag_is_hashlib_s_keyed_blake2b_128() -> None:
+    """Every length from 0 to 400 B (block edges at 128 and 256) and 2,000 random ones, with keys
+    of 1 to 64 bytes."""
+    rng = random.Random(1)
+    for length in [*range(401), *(rng.randrange(70_000) for _ in range(2_000))]:
+        key = rng.randbytes(rng.choice((32, 32, 1, 17, 64)))
+        data = rng.randbytes(length)
+        assert native.Mac(key).digest(data) == hashlib.blake2b(data, key=key, digest_size=16).digest(), length
+    with pytest.raises(ValueError):
+        native.Mac(b"")
+    with pytest.raises(ValueError):
+        native.Mac(bytes(65))
 
 
 def _pure(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -91,7 +107,7 @@ def test_open_agrees_with_python_on_mutated_datagrams(signed: bool) -> None:
     counts = {"same": 0, "left to python": 0}
     for _ in range(20_000):
         for data in traffic.batch():
-            fast = native.open(data, Opened, opener.verifying_states, opener.max_message_bytes)
+            fast = native.open(data, Opened, opener.verifying_macs, opener.max_message_bytes)
             slow = _python_open(opener, data)
             if fast is None:
                 signed_in_unsigned_mode = keys is None and len(data) > 3 and data[3] & FLAG_SIGNED
@@ -158,6 +174,51 @@ def test_decode_agrees_with_python_on_every_type_and_odd_bodies() -> None:
             assert [type(value) for value in fast] == [type(value) for value in slow]
             decoded += 1
     assert decoded > 50 and left > 200, (decoded, left)
+
+
+def _python_read(decoder: Any, body: bytes) -> Any:
+    """codec.unpack_body + the Python decoder, or the ProtocolError they raise."""
+    try:
+        return decoder(codec.unpack_body(body))
+    except ProtocolError as error:
+        return error
+
+
+@needs_native
+def test_reading_bodies_straight_into_types_agrees_with_msgpack_and_python() -> None:
+    """Genuine bodies (float64 and float32 encodings), then 60,000 with flipped bits, rewritten
+    bytes, cuts and extra bytes: C reads what msgpack + Python read, or leaves it to them."""
+    rng = random.Random(9)
+    read = left = 0
+    for sample in SAMPLES + BIG_SAMPLES:
+        info = info_for_class(type(sample))
+        slow_decoder = _compile_decoder(type(sample))
+        genuine = [msgpack.packb(sample), msgpack.packb(sample, use_single_float=True)]
+        for body in genuine:
+            assert native.decode_body(info.plan, body) == _python_read(slow_decoder, body)
+        for _ in range(60_000 // len(SAMPLES + BIG_SAMPLES)):
+            edited = bytearray(rng.choice(genuine))
+            move = rng.random()
+            if move < 0.4:
+                edited[rng.randrange(len(edited))] ^= 1 << rng.randrange(8)
+            elif move < 0.7:
+                edited[rng.randrange(len(edited))] = rng.choice(
+                    (0xC0, 0xC2, 0xC3, 0xCA, 0xCB, 0xD9, 0xDC, rng.randrange(256))
+                )
+            elif move < 0.85:
+                del edited[rng.randrange(len(edited)) :]
+            else:
+                edited += rng.randbytes(rng.randint(1, 3))
+            body = bytes(edited)
+            fast, slow = native.decode_body(info.plan, body), _python_read(slow_decoder, body)
+            if fast is None:
+                left += 1
+                continue
+            assert not isinstance(slow, ProtocolError), (type(sample).__name__, body.hex())
+            assert fast == slow and type(fast) is type(slow)
+            assert [type(value) for value in fast] == [type(value) for value in slow], body.hex()
+            read += 1
+    assert read > 5_000 and left > 20_000, (read, left)
 
 
 @needs_native
