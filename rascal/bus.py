@@ -127,9 +127,7 @@ class Bus:
         self._check_freshness = clock.synced
         # The C twin of _accept (protocol/_fastpath.c), for every plain datagram; None: Python only.
         self._receiver = (
-            native.Receiver(
-                self.codec.verifying_macs, self.codec.max_message_bytes, self._subs, self.replay, Envelope
-            )
+            native.Receiver(self.codec.verifying_macs, self.codec.max_message_bytes, self._subs, self.replay, Envelope)
             if native is not None and isinstance(self.replay, native.ReplayGuard)
             else None
         )
