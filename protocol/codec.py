@@ -81,9 +81,11 @@ class Codec:
         self._flags = FLAG_SIGNED if keyring else 0
         self._key_id = keyring.active if keyring else 0
         # What the C fast path signs with and verifies against, by key id (None: unsigned mode).
-        macs = {key_id: native.Mac(key) for key_id, key in keyring.keys.items()} if keyring and native else None
-        self._signing_mac = macs[keyring.active] if keyring and macs else None
-        self.verifying_macs = macs
+        self.verifying_macs = None
+        self._signing_mac = None
+        if keyring is not None and native is not None:
+            self.verifying_macs = {key_id: native.Mac(key) for key_id, key in keyring.keys.items()}
+            self._signing_mac = self.verifying_macs[keyring.active]
         # The first 12 header bytes are fixed per (type, channel, source): packed once.
         self._prefixes: dict[tuple[type, bytes, int], bytes] = {}
 

@@ -1,8 +1,9 @@
 """Which implementation runs the per-message hot path: the C extension, or its Python twin.
 
-``protocol/_fastpath.c`` seals, opens and decodes the common case (a well-formed, authentic
-message of this build's layout) and hands everything else back to the Python code in codec.py
-and schema.py, which stays the reference. ``native`` is that extension, or None where it was not
+``protocol/_fastpath.c`` tags, seals, opens, decodes and replay-checks the common case (a
+well-formed, authentic message of this build's layout) and hands everything else back to the
+Python code in auth.py, codec.py, schema.py, replay.py and rascal/bus.py, which stays the
+reference. ``native`` is that extension, or None where it was not
 built (no compiler at install time), is a stale build, or ``RASCAL_PURE_PYTHON=1`` asks for
 Python (the tests run both ways).
 """
@@ -17,8 +18,12 @@ ABI = 4
 PURE_PYTHON_ENV = "RASCAL_PURE_PYTHON"
 
 
+def pure_python_asked() -> bool:
+    return os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0")
+
+
 def _load() -> ModuleType | None:
-    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+    if pure_python_asked():
         return None
     try:
         from protocol import _fastpath
@@ -34,8 +39,6 @@ def describe() -> str:
     """One line for status output and benchmark headers."""
     if native is not None:
         return "C fast path"
-    return (
-        f"pure Python ({PURE_PYTHON_ENV} set)"
-        if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0")
-        else ("pure Python (C fast path not built)")
-    )
+    if pure_python_asked():
+        return f"pure Python ({PURE_PYTHON_ENV} set)"
+    return "pure Python (C fast path not built)"
