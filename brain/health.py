@@ -8,7 +8,9 @@ live inputs allow:
 mode                    when                                         speed cap
 ======================  ===========================================  =============================
 NORMAL                  navigation and every obstacle sensor live    the course's
-LIDAR_DEGRADED          some lidars silent, one horizontal one live  the course's (reported)
+LIDAR_DEGRADED          some lidars silent, one horizontal one live  the course's (reported); with
+                                                                     the sweeping lidar silent, stop
+                                                                     within the vertical ones' 24 m
 STEREO_ONLY             both horizontal lidars silent, stereo live   stop within stereo's 35 m
 LIDAR_ONLY              stereo silent, a horizontal lidar live       stop within the lidars' 40 m
 BLIND                   no obstacle sensor live                      0: stop
@@ -27,8 +29,9 @@ from dataclasses import dataclass
 
 from protocol.messages import NavQuality, VehicleState
 
-LIDARS = ("lidar_h_left", "lidar_h_right", "lidar_v_left", "lidar_v_right")
+LIDARS = ("lidar_h_left", "lidar_h_right", "lidar_v_left", "lidar_v_right", "lidar_sweep")
 HORIZONTAL_LIDARS = ("lidar_h_left", "lidar_h_right")
+SWEEP_LIDAR = "lidar_sweep"  # sees ditches across the road 37 m ahead; without it only the vertical lidars
 STEREO = "esvs"
 NAVIGATION = "navigation"
 
@@ -49,6 +52,7 @@ class HealthParams:
     navigation_max_age_s: float = 0.2  # 100 Hz solutions
     stereo_range_m: float = 35.0
     lidar_range_m: float = 40.0
+    ground_range_m: float = 24.0  # the vertical lidars' reach: where a ditch is seen without the sweep
     braking_mps2: float = 2.0  # the planner's comfortable deceleration, also used for stopping
     reaction_s: float = 0.5  # detection, planning and actuation latency before braking starts
     margin_m: float = 5.0  # stop this much short of the sensor's range
@@ -115,6 +119,9 @@ class SensorHealth:
             reason = f"stereo silent: lidars alone, stopping within {p.lidar_range_m:.0f} m"
         elif lidars_silent:
             mode, cap, reason = DriveMode.LIDAR_DEGRADED, math.inf, f"silent: {', '.join(lidars_silent)}"
+            if SWEEP_LIDAR in lidars_silent:
+                cap = stopping_speed_mps(p.ground_range_m, p)
+                reason += f"; ditches seen only {p.ground_range_m:.0f} m ahead, stopping within that"
         else:
             mode, cap, reason = DriveMode.NORMAL, math.inf, "all inputs live"
         if nav.quality == NavQuality.DEAD_RECKONING:

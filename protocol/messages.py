@@ -31,6 +31,7 @@ class Sensor(enum.IntEnum):
     ESVS = 5
     SIM = 6
     SYNTHETIC = 7
+    LIDAR_SWEEP = 8
 
 
 class NavQuality(enum.IntEnum):
@@ -209,6 +210,26 @@ class SurfaceProfile(NamedTuple):
     lateral_m: float
     ranges_m: tuple[float, ...]
     heights_m: tuple[float, ...]
+
+
+class GroundStretch(NamedTuple):
+    """A stretch of the ground line a sweeping lidar saw, as a box in the vehicle frame: level
+    ground (``height_m`` 0), or ground at least ``height_m`` below (< 0) or above (> 0) the plane
+    the vehicle stands on."""
+
+    x_near_m: float
+    x_far_m: float
+    y_right_m: float
+    y_left_m: float
+    height_m: float
+
+
+@message(type_id=24)
+class GroundSweep(NamedTuple):
+    """Sweeping-lidar terrain: where a scanner pitched down meets the ground ahead, right to left."""
+
+    sensor: int  # Sensor
+    stretches: tuple[GroundStretch, ...]
 
 
 class LaneBorder(NamedTuple):

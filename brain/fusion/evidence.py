@@ -38,8 +38,9 @@ class EvidenceLayers:
         self.lane = roll_into(self.lane, self.window, window, fill=0.0)
         self.window = window
 
-    def decay(self, factor: float, lane_factor: float) -> None:
-        self.evidence *= np.float32(factor)
+    def decay(self, factors: NDArray[np.float32], lane_factor: float) -> None:
+        """Fade each class by its own factor (one per layer) and the lane layer by ``lane_factor``."""
+        self.evidence *= np.asarray(factors, dtype=np.float32).reshape(-1, 1, 1)
         self.lane *= np.float32(lane_factor)
 
     def add(self, sensor_class: int, stamp: Stamp) -> None:

@@ -10,6 +10,9 @@ pose at its own ``t_meas_ns`` (PoseHistory), then:
   shadow stays unknown;
 - a SurfaceProfile adds hits over its hazardous stretches and misses over its level ones, in a
   strip along its line;
+- a GroundSweep does the same for its stretches across the road, each a box: the level ones as
+  deep as the ground the line moves over between sweeps, the low and high ones grown by the
+  sensor's noise;
 - LaneBorders mark a band outside each border as outside the lane and a band inside it as inside.
 
 Evidence fades with a half-life, applied in steps as time advances. ``cost_map()`` fuses the
@@ -28,12 +31,12 @@ from brain.fusion.cost import CostConfig, CostMap, build_cost_map, hazard_probab
 from brain.fusion.evidence import EvidenceLayers, Layer
 from brain.fusion.poses import Pose, PoseHistory
 from brain.fusion.profile import classify_profile
-from brain.fusion.raster import Stamp, rectangles, sensor_frame, strips, vehicle_frame, view_polygon
+from brain.fusion.raster import Stamp, boxes, rectangles, sensor_frame, strips, vehicle_frame, view_polygon
 from brain.fusion.sensors import DEFAULT_SENSOR_MODELS, SensorClass, SensorModel
 from brain.fusion.snapshot import encode_snapshot
 from brain.fusion.window import WindowPlacement
 from brain.grid import GridWindow
-from protocol.messages import Frame, LaneBorders, MapSnapshot, ObstacleList, SurfaceProfile, VehicleState
+from protocol.messages import Frame, GroundSweep, LaneBorders, MapSnapshot, ObstacleList, SurfaceProfile, VehicleState
 from rascal.config import setting
 
 NS_PER_S = 1_000_000_000
@@ -52,6 +55,9 @@ class FusionConfig:
     turn_with_heading: bool = setting(True, "a rectangular window lays its long side along the heading's nearer axis")
     half_life_s: float = setting(5.0, "evidence not renewed halves in this time (fades toward unknown)")
     lane_half_life_s: float = setting(3.0, "the same for lane beliefs")
+    sweep_half_life_s: float = setting(
+        30.0, "the same for the sweeping lidar's ground: terrain does not move, and its line is 37 m ahead"
+    )
     decay_step_s: float = setting(0.1, "evidence fades in steps this far apart (exact over each step)")
     evidence_min: float = setting(-2.0, "lowest log-odds one sensor class can hold in a cell (seen clear)")
     evidence_max: float = setting(4.0, "highest log-odds one sensor class can hold in a cell")
@@ -66,6 +72,9 @@ class FusionConfig:
     max_extrapolation_s: float = setting(0.1, "farthest a pose is extrapolated past the states kept")
     profile_step_m: float = setting(0.15, "ground this far above or below the vehicle's ground plane is a hazard")
     profile_max_slope: float = setting(0.5, "rise over run between neighbouring returns that is a hazard")
+    profile_min_rise_m: float = setting(
+        0.05, "...if the rise is at least this: the nearest returns are 6 cm apart, and 1 cm of noise makes slopes"
+    )
     profile_max_gap_m: float = setting(3.0, "level returns farther apart leave the ground between them unknown")
     profile_lost_m: float = setting(1.0, "a profile ending this far short of the sensor's range has lost the ground")
     lane_band_m: float = setting(3.0, "width of the band marked on each side of a lane border")
@@ -74,6 +83,7 @@ class FusionConfig:
         positive = (
             "half_life_s",
             "lane_half_life_s",
+            "sweep_half_life_s",
             "decay_step_s",
             "view_bin_deg",
             "pose_span_s",
@@ -85,8 +95,9 @@ class FusionConfig:
             raise ValueError(f"fusion settings must be positive: {bad}")
         if not self.evidence_min < 0 < self.evidence_max:
             raise ValueError("evidence_min must be negative and evidence_max positive")
-        if self.clear_margin_m < 0 or self.max_extrapolation_s < 0 or self.agreement_log_odds < 0:
-            raise ValueError("clear_margin_m, max_extrapolation_s and agreement_log_odds must be >= 0")
+        non_negative = ("clear_margin_m", "max_extrapolation_s", "agreement_log_odds", "profile_min_rise_m")
+        if any(getattr(self, name) < 0 for name in non_negative):
+            raise ValueError(f"fusion settings must be >= 0: {', '.join(non_negative)}")
 
     def placement(self) -> WindowPlacement:
         return WindowPlacement(
@@ -137,6 +148,8 @@ class HazardFusion:
         self.t_ns: int | None = None  # map time: the newest time fused
         self.last_fused_ns: dict[int, int] = {}  # per Sensor: the newest t_meas_ns fused from it
         self._t_decayed_ns: int | None = None  # the time the layers' evidence refers to
+        self._half_lives_s = np.full(len(SensorClass), self.config.half_life_s, np.float32)
+        self._half_lives_s[SensorClass.LIDAR_SWEEP] = self.config.sweep_half_life_s
 
     @property
     def window(self) -> GridWindow | None:
@@ -219,6 +232,7 @@ class HazardFusion:
                 lost_m=config.profile_lost_m,
                 point_half_m=config.resolution_m,
                 max_range_m=model.detect_range_m,
+                min_rise_m=config.profile_min_rise_m,
             )
         except ValueError:
             self.stats.bad_descriptor += 1
@@ -237,6 +251,33 @@ class HazardFusion:
         self.stamp.fill(frame.to_enu(strips(start, end, y, width)), model.hit_log_odds * weight)
         self.layers.add(model.sensor_class, self.stamp)
         self._fused(message.sensor, t_meas_ns, 1)
+        return True
+
+    def add_ground_sweep(self, t_meas_ns: int, message: GroundSweep) -> bool:
+        """Fuse one sweeping-lidar ground line; False (counted) when it cannot be placed."""
+        placed = self._prepare(t_meas_ns, message.sensor)
+        if placed is None:
+            return False
+        model, pose, weight = placed
+        rows = np.array(message.stretches, dtype=float).reshape(-1, 5)  # GroundStretch fields
+        finite = np.all(np.isfinite(rows), axis=1) & (rows[:, 0] <= rows[:, 1]) & (rows[:, 2] <= rows[:, 3])
+        self.stats.bad_descriptor += int(np.count_nonzero(~finite))
+        near = _nearest_m(rows, model.x_m, model.y_m)
+        keep = finite & (near <= model.detect_range_m)
+        self.stats.out_of_range += int(np.count_nonzero(finite & ~keep))
+        rows, near = rows[keep], near[keep]
+        assert self.layers is not None and self.stamp is not None
+        frame = vehicle_frame(pose)
+        level = rows[:, 4] == 0.0
+        # Level ground as deep as the line moves between sweeps; hazards grown by the noise, and
+        # drawn last, over any level ground they overlap.
+        depth = np.array((-model.line_half_width_m, model.line_half_width_m, 0.0, 0.0))
+        self.stamp.fill(frame.to_enu(boxes(*(rows[level, :4] + depth).T)), model.miss_log_odds * weight)
+        noise = model.noise_at(near[~level])
+        grown = rows[~level, :4] + np.outer(noise, (-1.0, 1.0, -1.0, 1.0))
+        self.stamp.fill(frame.to_enu(boxes(*grown.T)), model.hit_log_odds * weight)
+        self.layers.add(model.sensor_class, self.stamp)
+        self._fused(message.sensor, t_meas_ns, len(rows))
         return True
 
     def add_lane_borders(self, t_meas_ns: int, message: LaneBorders) -> bool:
@@ -335,7 +376,14 @@ class HazardFusion:
         elapsed_s = (self.t_ns - self._t_decayed_ns) / NS_PER_S
         if elapsed_s >= self.config.decay_step_s and self.layers is not None:
             self.layers.decay(
-                0.5 ** (elapsed_s / self.config.half_life_s), 0.5 ** (elapsed_s / self.config.lane_half_life_s)
+                0.5 ** (elapsed_s / self._half_lives_s), 0.5 ** (elapsed_s / self.config.lane_half_life_s)
             )
             self._t_decayed_ns = self.t_ns
             self.stats.decays += 1
+
+
+def _nearest_m(boxes: np.ndarray, x_m: float, y_m: float) -> np.ndarray:
+    """Distance from (x_m, y_m) to the nearest point of each box (rows x_near, x_far, y_right, y_left, ...)."""
+    dx = np.maximum(np.maximum(boxes[:, 0] - x_m, x_m - boxes[:, 1]), 0.0)
+    dy = np.maximum(np.maximum(boxes[:, 2] - y_m, y_m - boxes[:, 3]), 0.0)
+    return np.hypot(dx, dy)

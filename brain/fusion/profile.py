@@ -2,7 +2,8 @@
 
 A profile is the ground height along one forward line. Ground is a hazard where it leaves the
 vehicle's ground plane by more than a step (a ditch floor, a berm top) or where neighbouring
-returns differ steeply (a wall). Hazards are judged per stretch between neighbouring returns:
+returns differ steeply (a wall) by more than noise can (the nearest returns lie 6 cm apart, so
+1 cm of range noise alone can make a steep slope). Hazards are judged per stretch between neighbouring returns:
 a stretch is hazardous when either end is off the plane or it is steep (so the shadow before a
 ditch floor, where its near edge hides, counts as hazard: conservative); it is seen level when
 both ends are on the plane, not steep, and close enough that nothing fits unseen between them.
@@ -38,11 +39,13 @@ def classify_profile(
     lost_m: float = 1.0,
     point_half_m: float = 0.1,
     max_range_m: float = math.inf,
+    min_rise_m: float = 0.0,
 ) -> Stretches:
     """Hazard and level stretches of one profile. ``expected_end_m`` is where the last return
     lies on flat ground: a profile ending more than ``lost_m`` short of it has lost the ground.
-    ``point_half_m`` is the half length given a lone hazardous return. Returns behind the
-    vehicle's origin or beyond ``max_range_m`` are ignored, as are non-finite ones."""
+    ``point_half_m`` is the half length given a lone hazardous return. A rise steeper than
+    ``max_slope`` counts only from ``min_rise_m``. Returns behind the vehicle's origin or beyond
+    ``max_range_m`` are ignored, as are non-finite ones."""
     r = np.asarray(ranges_m, dtype=float)
     h = np.asarray(heights_m, dtype=float)
     if r.shape != h.shape or r.ndim != 1:
@@ -58,7 +61,8 @@ def classify_profile(
     if not r.size:
         return Stretches(np.zeros((0, 2)), np.zeros((0, 2)))
     off_plane = np.abs(h) > step_m
-    steep = np.abs(h[1:] - h[:-1]) > max_slope * np.maximum(gap, 1e-3)
+    rise = np.abs(h[1:] - h[:-1])
+    steep = (rise > max_slope * np.maximum(gap, 1e-3)) & (rise >= min_rise_m)
     hazard_segment = off_plane[:-1] | off_plane[1:] | steep
     level_segment = ~hazard_segment & (gap <= max_gap_m)
     hazard = [_spans(r, hazard_segment)]

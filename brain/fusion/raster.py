@@ -120,11 +120,14 @@ def view_polygon(
 
 def strips(x_from_m: FloatArray, x_to_m: FloatArray, y_m: float, half_width_m: float) -> FloatArray:
     """(n, 4, 2) corners of strips x_from..x_to at y +- half_width (vehicle frame)."""
-    low, high = y_m - half_width_m, y_m + half_width_m
-    corners = [
-        ((a, low), (b, low), (b, high), (a, high)) for a, b in zip(x_from_m.tolist(), x_to_m.tolist(), strict=True)
-    ]
-    return np.array(corners, dtype=float).reshape(-1, 4, 2)
+    x_from, x_to = np.asarray(x_from_m, dtype=float), np.asarray(x_to_m, dtype=float)
+    return boxes(x_from, x_to, np.full(x_from.shape, y_m - half_width_m), np.full(x_from.shape, y_m + half_width_m))
+
+
+def boxes(x_from_m: FloatArray, x_to_m: FloatArray, y_from_m: FloatArray, y_to_m: FloatArray) -> FloatArray:
+    """(n, 4, 2) corners of axis-aligned boxes x_from..x_to by y_from..y_to (vehicle frame)."""
+    corners = ((x_from_m, y_from_m), (x_to_m, y_from_m), (x_to_m, y_to_m), (x_from_m, y_to_m))
+    return np.stack([np.column_stack(corner) for corner in corners], axis=1).reshape(-1, 4, 2)
 
 
 class Stamp:

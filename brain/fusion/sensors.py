@@ -30,6 +30,7 @@ class SensorClass(enum.IntEnum):
     LIDAR_H = 0  # horizontal lidars: obstacles cutting their scan plane
     STEREO = 1  # ESVS: obstacles above the ground
     LIDAR_V = 2  # vertical lidars: ground surface (ditches, berms, drop-offs)
+    LIDAR_SWEEP = 3  # the sweeping lidar: the ground line across the road ahead
 
 
 @dataclass(frozen=True)
@@ -94,11 +95,23 @@ _V_LIDAR = {
     "noise_per_m2": 1.5e-3,
 }
 
+_SWEEP_LIDAR = {
+    "sensor_class": SensorClass.LIDAR_SWEEP,
+    "fov_rad": math.radians(60.0),  # the message says what the line covered
+    "max_range_m": 45.0,  # the line lies 37 m ahead of the rear axle, up to 43 m at its ends
+    "detect_range_m": 60.0,
+    "hit_log_odds": 0.9,
+    "miss_log_odds": -0.4,
+    "noise_m": 0.05,  # range noise and pose; the lidar already grows hazards by half a beam spacing
+    "line_half_width_m": 0.3,  # half the ground the line moves over between sweeps at 25 m/s
+}
+
 DEFAULT_SENSOR_MODELS: Mapping[int, SensorModel] = {
     Sensor.LIDAR_H_LEFT: SensorModel(x_m=1.8, y_m=0.4, yaw_rad=math.radians(15.0), **_H_LIDAR),
     Sensor.LIDAR_H_RIGHT: SensorModel(x_m=1.8, y_m=-0.4, yaw_rad=math.radians(-15.0), **_H_LIDAR),
     Sensor.LIDAR_V_LEFT: SensorModel(x_m=1.5, y_m=0.5, **_V_LIDAR),
     Sensor.LIDAR_V_RIGHT: SensorModel(x_m=1.5, y_m=-0.5, **_V_LIDAR),
+    Sensor.LIDAR_SWEEP: SensorModel(x_m=1.8, y_m=0.0, **_SWEEP_LIDAR),
     Sensor.ESVS: SensorModel(
         sensor_class=SensorClass.STEREO,
         x_m=1.6,

@@ -20,7 +20,7 @@ from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthPar
 from brain.planning.planner import Planner, PlanResult
 from protocol import channels
 from protocol.codec import Envelope
-from protocol.messages import LaneBorders, ObstacleList, Sensor, Severity, SurfaceProfile, VehicleState
+from protocol.messages import GroundSweep, LaneBorders, ObstacleList, Sensor, Severity, SurfaceProfile, VehicleState
 from rascal.config import setting
 from rascal.module import Module, Runtime
 
@@ -29,6 +29,7 @@ SENSOR_NAMES = {
     Sensor.LIDAR_H_RIGHT: "lidar_h_right",
     Sensor.LIDAR_V_LEFT: "lidar_v_left",
     Sensor.LIDAR_V_RIGHT: "lidar_v_right",
+    Sensor.LIDAR_SWEEP: "lidar_sweep",
     Sensor.ESVS: STEREO,
 }
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
@@ -90,6 +91,7 @@ class Brain(Module):
         bus.subscribe(channels.OBSTACLES_LIDAR, self.on_obstacles)
         bus.subscribe(channels.OBSTACLES_ESVS, self.on_obstacles)
         bus.subscribe(channels.SURFACE_PROFILE, self.on_profile)
+        bus.subscribe(channels.GROUND_SWEEP, self.on_sweep)
         bus.subscribe(channels.LANE_BORDERS, self.on_lanes)
         self.every(1.0 / config.plan_rate_hz, self.plan, priority=5)
         if config.snapshot_rate_hz > 0:
@@ -110,6 +112,10 @@ class Brain(Module):
     def on_profile(self, message: SurfaceProfile, envelope: Envelope) -> None:
         self._heard(message.sensor, envelope.t_meas_ns)
         self.fusion.add_profile(envelope.t_meas_ns, message)
+
+    def on_sweep(self, message: GroundSweep, envelope: Envelope) -> None:
+        self._heard(message.sensor, envelope.t_meas_ns)
+        self.fusion.add_ground_sweep(envelope.t_meas_ns, message)
 
     def on_lanes(self, message: LaneBorders, envelope: Envelope) -> None:
         self.fusion.add_lane_borders(envelope.t_meas_ns, message)

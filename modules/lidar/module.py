@@ -1,6 +1,7 @@
 """One simulated lidar per process: it reads the simulator's true pose, looks at the scenario's
 world from its mount, and publishes what that lidar would: obstacle descriptors (horizontal
-lidars) or a ground profile (vertical lidars), with the scenario's sensor faults applied.
+lidars), a ground profile (vertical lidars) or the ground line across the road (the sweeping
+lidar), with the scenario's sensor faults applied.
 """
 
 from __future__ import annotations
@@ -13,22 +14,38 @@ import numpy as np
 from modules.lidar.cluster import describe_scan
 from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profile_scan
 from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, cast
+from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
 from protocol import channels
-from protocol.messages import Frame, ObstacleList, Sensor, SimTruth, SurfaceProfile
+from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
 from rascal.config import setting
 from rascal.module import Module, Runtime
 from rascal.rtdb import Validity
 
 # Source ids the runner gives each lidar process (``--source-id``), and what each one is.
-SOURCE_IDS: dict[str, int] = {"lidar_h_left": 21, "lidar_h_right": 22, "lidar_v_left": 23, "lidar_v_right": 24}
+SOURCE_IDS: dict[str, int] = {
+    "lidar_h_left": 21,
+    "lidar_h_right": 22,
+    "lidar_v_left": 23,
+    "lidar_v_right": 24,
+    "lidar_sweep": 25,
+}
 SENSORS: dict[str, Sensor] = {
     "lidar_h_left": Sensor.LIDAR_H_LEFT,
     "lidar_h_right": Sensor.LIDAR_H_RIGHT,
     "lidar_v_left": Sensor.LIDAR_V_LEFT,
     "lidar_v_right": Sensor.LIDAR_V_RIGHT,
+    "lidar_sweep": Sensor.LIDAR_SWEEP,
 }
+CHANNELS: dict[str, str] = {
+    "lidar_h_left": channels.OBSTACLES_LIDAR,
+    "lidar_h_right": channels.OBSTACLES_LIDAR,
+    "lidar_v_left": channels.SURFACE_PROFILE,
+    "lidar_v_right": channels.SURFACE_PROFILE,
+    "lidar_sweep": channels.GROUND_SWEEP,
+}
+Output = ObstacleList | SurfaceProfile | GroundSweep
 # The simulator publishes truth far faster than this; a pose older than this means it stopped,
 # and a lidar without a pose has nothing to scan from.
 TRUTH_MAX_AGE_S = 0.5
@@ -36,7 +53,9 @@ TRUTH_MAX_AGE_S = 0.5
 
 @dataclass(frozen=True)
 class LidarConfig:
-    sensor: str = setting("lidar_h_left", "which lidar: lidar_h_left, lidar_h_right, lidar_v_left, lidar_v_right")
+    sensor: str = setting(
+        "lidar_h_left", "which lidar: lidar_h_left, lidar_h_right, lidar_v_left, lidar_v_right, lidar_sweep"
+    )
     scenario: str = setting(str(DEFAULT_SCENARIO), "scenario file whose world the lidar sees")
     rate_hz: float = setting(25.0, "publication rate (a horizontal scanner sweeps at 75 Hz; the newest sweep is sent)")
     noise_std_m: float = setting(0.01, "range noise, one sigma, before any NOISE fault")
@@ -44,7 +63,8 @@ class LidarConfig:
 
 
 class Lidar(Module):
-    """Simulated lidar: horizontal ones publish ObstacleList, vertical ones SurfaceProfile."""
+    """Simulated lidar: horizontal ones publish ObstacleList, vertical ones SurfaceProfile, the
+    sweeping one GroundSweep."""
 
     name = "lidar"
     default_source_id = SOURCE_IDS["lidar_h_left"]
@@ -57,7 +77,7 @@ class Lidar(Module):
         self.world = world
         self.seed = seed
         self.last_truth_ns: int | None = None
-        self.last_output: ObstacleList | SurfaceProfile | None = None  # what STUCK repeats
+        self.last_output: Output | None = None  # what STUCK repeats
         self.published = 0
         self.active_faults: tuple[FaultKind, ...] = ()
         self.last_summary = ""
@@ -71,7 +91,6 @@ class Lidar(Module):
         if self.world is None:
             scenario = load_scenario(config.scenario)
             self.world, self.seed = scenario.world, scenario.seed
-        self.horizontal = config.sensor in HORIZONTAL_MOUNTS
         self.scene = Scene.from_obstacles(self.world.obstacles)
         self.spec = ScanSpec(range_noise_std_m=config.noise_std_m)
         self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S)
@@ -106,7 +125,7 @@ class Lidar(Module):
         self.last_output = self.measure(truth, t_meas_ns, noise_scale)
         self._publish(self.last_output, t_meas_ns)
 
-    def measure(self, truth: SimTruth, t_meas_ns: int, noise_scale: float = 1.0) -> ObstacleList | SurfaceProfile:
+    def measure(self, truth: SimTruth, t_meas_ns: int, noise_scale: float = 1.0) -> Output:
         """What this lidar sees from the vehicle pose in ``truth``. The noise is drawn from a
         generator seeded by (seed, seed_offset, sensor, t_meas_ns): the same truth stream gives
         the same output however the process happens to be scheduled."""
@@ -115,19 +134,24 @@ class Lidar(Module):
         entropy = [self.seed % 2**64, self.config.seed_offset % 2**64, SOURCE_IDS[sensor], t_meas_ns % 2**64]
         rng = np.random.default_rng(np.random.SeedSequence(entropy))
         pose = Pose2D(truth.east_m, truth.north_m, truth.yaw_rad)
-        if self.horizontal:
+        if sensor in HORIZONTAL_MOUNTS:
             scan = cast(self.scene, pose, HORIZONTAL_MOUNTS[sensor], self.spec, rng, noise_scale)
             obstacles = describe_scan(scan)
             self.last_summary = f"{len(obstacles)} obstacles"
             return ObstacleList(int(SENSORS[sensor]), int(Frame.VEHICLE), obstacles)
+        if sensor == "lidar_sweep":
+            mount = replace(SWEEP_MOUNT, range_noise_std_m=self.config.noise_std_m)
+            returns = sweep_scan(self.world.hazards, self.scene, pose, mount, rng, noise_scale)
+            sweep = describe_sweep(returns, mount, int(SENSORS[sensor]))
+            self.last_summary = _sweep_summary(sweep)
+            return sweep
         mount = replace(VERTICAL_MOUNTS[sensor], range_noise_std_m=self.config.noise_std_m)
         profile = profile_scan(self.world.hazards, pose, mount, int(SENSORS[sensor]), rng, noise_scale)
         self.last_summary = _hazard_summary(detect_hazards(profile))
         return profile
 
-    def _publish(self, message: ObstacleList | SurfaceProfile, t_meas_ns: int) -> None:
-        channel = channels.OBSTACLES_LIDAR if self.horizontal else channels.SURFACE_PROFILE
-        self.bus.publish(channel, message, t_meas_ns=t_meas_ns)
+    def _publish(self, message: Output, t_meas_ns: int) -> None:
+        self.bus.publish(CHANNELS[self.config.sensor], message, t_meas_ns=t_meas_ns)
         self.published += 1
 
     def instance(self) -> str:
@@ -144,3 +168,9 @@ def _hazard_summary(hazards: list[Hazard]) -> str:
     if not hazards:
         return "level ground"
     return ", ".join(f"{h.kind.value} {h.start_range_m:.1f}-{h.end_range_m:.1f} m" for h in hazards)
+
+
+def _sweep_summary(sweep: GroundSweep) -> str:
+    low = sum(1 for stretch in sweep.stretches if stretch.height_m < 0)
+    high = sum(1 for stretch in sweep.stretches if stretch.height_m > 0)
+    return f"{len(sweep.stretches)} stretches ({low} low, {high} high)"

@@ -116,7 +116,7 @@ def profile_scan(
     ground = ground_height(
         _near_line(hazards, base_e, base_n, pose.yaw_rad, reach), base_e + c * along, base_n + s * along
     )
-    distance, height = _first_hits(along, ground, mount.z_m, depressions)
+    distance, height = first_hits(along, ground, mount.z_m, np.tan(depressions))
     hit = np.isfinite(distance) & (np.hypot(distance, mount.z_m - height) <= mount.max_range_m)
     distance, height, depressions = distance[hit], height[hit], depressions[hit]
     if rng is not None and mount.range_noise_std_m * noise_scale > 0:
@@ -141,23 +141,28 @@ def _near_line(
     return near
 
 
-def _first_hits(
-    along: np.ndarray, ground: np.ndarray, height_m: float, depressions: np.ndarray
+def first_hits(
+    along: np.ndarray, ground: np.ndarray, height_m: float, slopes: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Where each beam from ``height_m`` first meets the sampled ground, interpolating linearly
-    between the samples that bracket the crossing; inf distance for a beam that never does."""
-    beam = height_m - np.outer(np.tan(depressions), along)  # (beams, samples) height of each beam
+    """Where each beam from ``height_m``, falling ``slopes[i]`` per metre, first meets the sampled
+    ground, interpolating linearly between the samples that bracket the crossing; inf distance for
+    a beam that never does. ``along`` and ``ground`` are the samples' distances and heights,
+    (samples,) shared by every beam or (beams, samples) each its own."""
+    slopes = np.asarray(slopes, dtype=float)
+    shape = (len(slopes), np.shape(along)[-1])
+    along, ground = np.broadcast_to(along, shape), np.broadcast_to(ground, shape)
+    beam = height_m - slopes[:, None] * along  # (beams, samples) height of each beam
     below = beam <= ground
     first = np.argmax(below, axis=1)
-    hits = below[np.arange(len(depressions)), first] & (first > 0)
+    rows = np.arange(len(slopes))
+    hits = below[rows, first] & (first > 0)
     k = np.where(hits, first, 1)
-    rows = np.arange(len(depressions))
     # Gap between beam and ground before (>0) and at (<=0) the crossing sample.
-    before = beam[rows, k - 1] - ground[k - 1]
-    after = beam[rows, k] - ground[k]
+    before = beam[rows, k - 1] - ground[rows, k - 1]
+    after = beam[rows, k] - ground[rows, k]
     fraction = before / np.maximum(before - after, 1e-12)
-    distance = along[k - 1] + fraction * (along[k] - along[k - 1])
-    height = ground[k - 1] + fraction * (ground[k] - ground[k - 1])
+    distance = along[rows, k - 1] + fraction * (along[rows, k] - along[rows, k - 1])
+    height = ground[rows, k - 1] + fraction * (ground[rows, k] - ground[rows, k - 1])
     return np.where(hits, distance, np.inf), np.where(hits, height, np.nan)
 
 

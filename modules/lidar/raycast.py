@@ -155,18 +155,51 @@ def ray_ranges(
     """Distance from ``origin`` (ENU) along each ray to the nearest footprint cut by the plane at
     ``plane_height_m``; inf where nothing is hit within ``max_range_m``. ``angles_rad`` are ENU
     ray angles, evenly spaced and increasing, as a scanner's are."""
-    nearest = np.full(len(angles_rad), np.inf)
+    rays, t, _ = _footprint_hits(origin, angles_rad, scene, plane_height_m, max_range_m)
+    return _nearest(len(angles_rad), rays, t, max_range_m)
+
+
+def descending_ray_ranges(
+    origin: np.ndarray,
+    angles_rad: np.ndarray,
+    height_m: float,
+    slopes: np.ndarray,
+    scene: Scene,
+    max_range_m: float,
+) -> np.ndarray:
+    """Horizontal distance along each ray of a scanner pitched down (ray i starts ``height_m``
+    above the ground at ``origin`` and falls ``slopes[i]`` per metre) to the first footprint it
+    enters below the obstacle's top; inf where none within ``max_range_m``. A ray that enters
+    above the top and comes down onto it is taken to miss: for the narrow obstacles of a scenario
+    that top is a few centimetres long."""
+    rays, t, tops = _footprint_hits(origin, angles_rad, scene, 0.0, max_range_m)
+    under = height_m - slopes[rays] * t < tops
+    return _nearest(len(angles_rad), rays[under], t[under], max_range_m)
+
+
+def _footprint_hits(
+    origin: np.ndarray, angles_rad: np.ndarray, scene: Scene, plane_height_m: float, max_range_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ray index, distance to the footprint's entry, obstacle height) of every ray that enters
+    an obstacle taller than ``plane_height_m`` (inf distances where a pair misses)."""
     rays, circles = _ray_pairs(
         origin, angles_rad, scene.circle_xy, scene.circle_r, scene.circle_h, plane_height_m, max_range_m
     )
-    if rays.size:
-        t = _circle_hits(origin, angles_rad[rays], scene.circle_xy[circles], scene.circle_r[circles])
-        np.minimum.at(nearest, rays, t)
+    circle_t = _circle_hits(origin, angles_rad[rays], scene.circle_xy[circles], scene.circle_r[circles])
     box_radius = np.hypot(scene.box_half[:, 0], scene.box_half[:, 1])
-    rays, boxes = _ray_pairs(origin, angles_rad, scene.box_xy, box_radius, scene.box_h, plane_height_m, max_range_m)
-    if rays.size:
-        t = _box_hits(origin, angles_rad[rays], scene.box_xy[boxes], scene.box_half[boxes], scene.box_yaw[boxes])
-        np.minimum.at(nearest, rays, t)
+    box_rays, boxes = _ray_pairs(origin, angles_rad, scene.box_xy, box_radius, scene.box_h, plane_height_m, max_range_m)
+    box_t = _box_hits(origin, angles_rad[box_rays], scene.box_xy[boxes], scene.box_half[boxes], scene.box_yaw[boxes])
+    return (
+        np.concatenate((rays, box_rays)),
+        np.concatenate((circle_t, box_t)),
+        np.concatenate((scene.circle_h[circles], scene.box_h[boxes])),
+    )
+
+
+def _nearest(count: int, rays: np.ndarray, t: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Each ray's nearest hit among the (ray, distance) pairs; inf beyond ``max_range_m``."""
+    nearest = np.full(count, np.inf)
+    np.minimum.at(nearest, rays, t)
     nearest[nearest > max_range_m] = np.inf
     return nearest
 

@@ -51,6 +51,7 @@ SENSOR_NAMES = frozenset(
         "lidar_h_right",
         "lidar_v_left",
         "lidar_v_right",
+        "lidar_sweep",
         "esvs",
     }
 )

@@ -36,6 +36,7 @@ SENSOR_RGB = {
     "lidar_h_right": (1.0, 0.82, 0.4),
     "lidar_v_left": (0.78, 0.49, 1.0),
     "lidar_v_right": (0.88, 0.67, 1.0),
+    "lidar_sweep": (0.55, 0.9, 0.45),
     "esvs": (0.3, 0.79, 0.94),
 }
 TOPICS = {

@@ -8,6 +8,7 @@ from brain.health import (
     LIDARS,
     NAVIGATION,
     STEREO,
+    SWEEP_LIDAR,
     DriveMode,
     HealthParams,
     SensorHealth,
@@ -72,6 +73,22 @@ def test_modes(live_sources: tuple[str, ...], mode: DriveMode, stops: bool) -> N
     result = health.assess(5 * S, course_speed_mps=10.0)
     assert result.mode is mode
     assert (result.speed_cap_mps == 0.0) is stops
+
+
+def test_without_the_sweeping_lidar_the_vehicle_can_stop_within_the_vertical_lidars_reach() -> None:
+    params = HealthParams()
+    health = SensorHealth()
+    live(health, 5 * S, *(name for name in LIDARS if name != SWEEP_LIDAR), STEREO)
+    result = health.assess(5 * S, course_speed_mps=13.4)
+    assert result.mode is DriveMode.LIDAR_DEGRADED and SWEEP_LIDAR in result.silent
+    v = result.speed_cap_mps
+    assert v * params.reaction_s + v**2 / (2 * params.braking_mps2) == pytest.approx(24.0 - params.margin_m)
+    assert "ditches seen only 24 m ahead" in result.reason
+    # Another lidar silent, the sweep live: reported, not slowed.
+    health = SensorHealth()
+    live(health, 5 * S, *(name for name in LIDARS if name != "lidar_v_left"), STEREO)
+    result = health.assess(5 * S, course_speed_mps=13.4)
+    assert (result.mode, result.speed_cap_mps) == (DriveMode.LIDAR_DEGRADED, 13.4)
 
 
 def test_stale_or_invalid_navigation_stops() -> None:

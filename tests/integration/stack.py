@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from modules.lidar.module import SOURCE_IDS as LIDAR_SOURCE_IDS
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import (
@@ -39,7 +40,8 @@ from tests.conftest import ROOT
 from tests.integration.listener import Listener
 
 NS = 1e9
-LIDARS = {"lidar_h_left": 21, "lidar_h_right": 22, "lidar_v_left": 23, "lidar_v_right": 24}
+LIDARS = LIDAR_SOURCE_IDS  # all five, as the default deployment has them
+LIDAR_SETTINGS: dict[str, dict[str, Any]] = {"lidar_sweep": {"rate_hz": 37.5}}  # as in deploy/localhost.toml
 LISTENER_SOURCE_ID = 914
 
 # The closed loop, one table per process: {label: {key: value}} with "set" the config overrides.
@@ -48,7 +50,10 @@ MODULES: dict[str, dict[str, Any]] = {
     "time_service": {},
     "sim": {},
     "nav_sensors": {},
-    **{name: {"module": "lidar", "source_id": sid, "set": {"sensor": name}} for name, sid in LIDARS.items()},
+    **{
+        name: {"module": "lidar", "source_id": sid, "set": {"sensor": name, **LIDAR_SETTINGS.get(name, {})}}
+        for name, sid in LIDARS.items()
+    },
     "stereo_camera": {"set": {"ring_name": "{ring}"}},
     "esvs": {"set": {"ring_name": "{ring}"}},
     "ins": {},

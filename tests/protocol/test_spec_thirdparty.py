@@ -397,6 +397,7 @@ ENUM_FIELDS = {
     ("ObstacleList", "sensor"): "Sensor",
     ("ObstacleList", "frame"): "Frame",
     ("SurfaceProfile", "sensor"): "Sensor",
+    ("GroundSweep", "sensor"): "Sensor",
     ("LaneBorders", "sensor"): "Sensor",
 }
 NOTES = {

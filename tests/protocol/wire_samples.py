@@ -111,6 +111,15 @@ SAMPLES: list[Any] = [
         ranges_m=tuple(2.0 + 0.25 * i for i in range(80)),
         heights_m=tuple(0.01 * math.sin(i / 5) for i in range(80)),
     ),
+    m.GroundSweep(
+        sensor=m.Sensor.LIDAR_SWEEP,
+        stretches=(
+            m.GroundStretch(x_near_m=36.7, x_far_m=36.9, y_right_m=-20.1, y_left_m=-7.1, height_m=0.0),
+            m.GroundStretch(37.4, 39.2, -7.2, -5.2, -0.13),
+            m.GroundStretch(36.7, 36.9, 7.1, 20.1, 0.0),
+        ),
+    ),
+    m.GroundSweep(m.Sensor.LIDAR_SWEEP, ()),
     m.LaneBorders(
         sensor=m.Sensor.ESVS,
         borders=(

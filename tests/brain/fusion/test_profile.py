@@ -50,6 +50,20 @@ def test_a_berm_a_steep_step_and_lost_ground_are_hazards() -> None:
     assert alone == [pytest.approx((23.4, 23.6))]
 
 
+def test_range_noise_between_the_nearest_returns_is_not_a_wall() -> None:
+    # The nearest beams meet the ground 6 cm apart: 1 cm of range noise gives slopes above 0.5.
+    # A drive met such a wall 3.5 m ahead at 12.7 m/s, swerved, and left the corridor.
+    rng = np.random.default_rng(11)
+    mount, sensor = VERTICAL_MOUNTS["lidar_v_left"], int(Sensor.LIDAR_V_LEFT)
+    walls = {0.0: 0, 0.05: 0}
+    for _ in range(500):
+        profile = profile_scan([], Pose2D(0.0, 0.0, 0.0), mount, sensor, rng)
+        for rise in walls:
+            stretches = classify_profile(profile.ranges_m, profile.heights_m, STEP, SLOPE, GAP, END, min_rise_m=rise)
+            walls[rise] += len(stretches.hazard)
+    assert walls[0.05] == 0 < walls[0.0]
+
+
 def test_mismatched_profiles_are_refused() -> None:
     with pytest.raises(ValueError):
         classify_profile([1.0, 2.0], [0.0], STEP, SLOPE, GAP, END)

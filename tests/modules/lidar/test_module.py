@@ -11,12 +11,12 @@ from typing import Any
 import pytest
 
 from modules.lidar import module as lidar_module
-from modules.lidar.module import SOURCE_IDS, Lidar, LidarConfig
+from modules.lidar.module import CHANNELS, SOURCE_IDS, Lidar, LidarConfig
 from modules.sim.world import FaultKind, HazardKind, SensorFault, Shape, TerrainHazard, World, WorldObstacle
 from protocol import channels
 from protocol.auth import Keyring
 from protocol.codec import Envelope
-from protocol.messages import Frame, ObstacleList, Sensor, SimTruth, SurfaceProfile
+from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
 from protocol.transport import MemTransport
 from rascal.bus import Bus
 from rascal.clock import ManualClock
@@ -66,8 +66,7 @@ def make(sensor: str, world: World = WORLD, seed: int = 5, **config: Any) -> Har
         lidar, clock, Bus(MemTransport(hub), SIM_SOURCE, keyring, clock), Bus(MemTransport(hub), 99, keyring, clock)
     )
     harness.t0_ns = clock.t_ns
-    channel = channels.OBSTACLES_LIDAR if sensor.startswith("lidar_h") else channels.SURFACE_PROFILE
-    harness.listener.subscribe(channel, lambda msg, env: harness.received.append((msg, env)))
+    harness.listener.subscribe(CHANNELS[sensor], lambda msg, env: harness.received.append((msg, env)))
     return harness
 
 
@@ -92,6 +91,21 @@ def test_a_vertical_lidar_publishes_the_ground_profile() -> None:
     assert envelope.source_id == 24
     assert -0.61 < min(message.heights_m) < -0.3  # the ditch, its bottom partly in shadow
     assert "ditch" in harness.lidar.status_detail()
+
+
+def test_the_sweeping_lidar_publishes_the_ground_line_across_the_road() -> None:
+    # A wash under the scan line (37 m ahead of the rear axle) and the post in front of it.
+    wash = TerrainHazard("wash", HazardKind.DITCH, 38.0, 0.0, 0.0, 2.5, 14.0, 0.7)
+    harness = make("lidar_sweep", World(obstacles=WORLD.obstacles, hazards=(wash,)))
+    (message, envelope), *_ = harness.step(0)
+    assert isinstance(message, GroundSweep)
+    assert message.sensor == Sensor.LIDAR_SWEEP and envelope.source_id == 25
+    low = [stretch for stretch in message.stretches if stretch.height_m < 0]
+    assert min(s.y_right_m for s in low) == pytest.approx(-7.0, abs=0.2)
+    assert max(s.y_left_m for s in low) == pytest.approx(7.0, abs=0.2)
+    (post,) = [stretch for stretch in message.stretches if stretch.height_m > 0]
+    assert post.y_right_m < 3.0 < post.y_left_m and post.x_near_m == pytest.approx(29.5, abs=0.2)
+    assert "low" in harness.lidar.status_detail()
 
 
 def test_nothing_is_published_without_a_fresh_pose() -> None:
