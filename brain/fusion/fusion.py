@@ -42,6 +42,7 @@ from rascal.config import setting
 NS_PER_S = 1_000_000_000
 MAX_EXTENT_M = 50.0  # a descriptor claiming a larger object is clipped to this
 MAX_BORDER_M = 200.0  # lane borders are drawn at most this far from where they start
+MAX_SWEEP_GAP_M = 2.0  # a ground sweep's hazards reach back at most this far towards the last one's line
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,10 @@ class FusionConfig:
     half_life_s: float = setting(5.0, "evidence not renewed halves in this time (fades toward unknown)")
     lane_half_life_s: float = setting(3.0, "the same for lane beliefs")
     sweep_half_life_s: float = setting(
-        30.0, "the same for the sweeping lidar's ground: terrain does not move, and its line is 37 m ahead"
+        300.0, "the same for the sweeping lidar's ground: terrain does not move, and its line is 37 m ahead"
+    )
+    sweep_half_distance_m: float = setting(
+        200.0, "... and it also halves every this many metres driven: remembered ground moves with the pose's drift"
     )
     decay_step_s: float = setting(0.1, "evidence fades in steps this far apart (exact over each step)")
     evidence_min: float = setting(-2.0, "lowest log-odds one sensor class can hold in a cell (seen clear)")
@@ -84,6 +88,7 @@ class FusionConfig:
             "half_life_s",
             "lane_half_life_s",
             "sweep_half_life_s",
+            "sweep_half_distance_m",
             "decay_step_s",
             "view_bin_deg",
             "pose_span_s",
@@ -147,9 +152,13 @@ class HazardFusion:
         self.stamp: Stamp | None = None
         self.t_ns: int | None = None  # map time: the newest time fused
         self.last_fused_ns: dict[int, int] = {}  # per Sensor: the newest t_meas_ns fused from it
+        self._sweep_poses: dict[int, Pose] = {}  # per sweeping lidar: the pose of its last sweep
         self._t_decayed_ns: int | None = None  # the time the layers' evidence refers to
+        self._decayed_at: Pose | None = None  # where the vehicle was then
         self._half_lives_s = np.full(len(SensorClass), self.config.half_life_s, np.float32)
         self._half_lives_s[SensorClass.LIDAR_SWEEP] = self.config.sweep_half_life_s
+        self._half_distances_m = np.full(len(SensorClass), np.inf, np.float32)
+        self._half_distances_m[SensorClass.LIDAR_SWEEP] = self.config.sweep_half_distance_m
 
     @property
     def window(self) -> GridWindow | None:
@@ -269,12 +278,20 @@ class HazardFusion:
         assert self.layers is not None and self.stamp is not None
         frame = vehicle_frame(pose)
         level = rows[:, 4] == 0.0
-        # Level ground as deep as the line moves between sweeps; hazards grown by the noise, and
-        # drawn last, over any level ground they overlap.
-        depth = np.array((-model.line_half_width_m, model.line_half_width_m, 0.0, 0.0))
-        self.stamp.fill(frame.to_enu(boxes(*(rows[level, :4] + depth).T)), model.miss_log_odds * weight)
+        # Each sweep speaks for the ground as deep as the line moves between sweeps: level ground
+        # half that either side. Hazards reach back to the last sweep's line (a ditch's near wall
+        # may lie anywhere after it; a busy machine sweeps less often), are grown by the noise, and
+        # are drawn last, over any level ground they overlap.
+        half = model.line_half_width_m
+        last = self._sweep_poses.get(message.sensor)
+        moved_m = math.hypot(pose.east_m - last.east_m, pose.north_m - last.north_m) if last else 0.0
+        self._sweep_poses[message.sensor] = pose
+        back_m = min(max(half, moved_m), MAX_SWEEP_GAP_M)
+        self.stamp.fill(
+            frame.to_enu(boxes(*(rows[level, :4] + (-half, half, 0.0, 0.0)).T)), model.miss_log_odds * weight
+        )
         noise = model.noise_at(near[~level])
-        grown = rows[~level, :4] + np.outer(noise, (-1.0, 1.0, -1.0, 1.0))
+        grown = rows[~level, :4] + (-back_m, half, 0.0, 0.0) + np.outer(noise, (-1.0, 1.0, -1.0, 1.0))
         self.stamp.fill(frame.to_enu(boxes(*grown.T)), model.hit_log_odds * weight)
         self.layers.add(model.sensor_class, self.stamp)
         self._fused(message.sensor, t_meas_ns, len(rows))
@@ -367,18 +384,20 @@ class HazardFusion:
             self.stats.moves += 1
 
     def _advance(self, t_ns: int) -> None:
-        """Move map time forward to ``t_ns`` and let the evidence fade for every whole step."""
+        """Move map time forward to ``t_ns`` and let the evidence fade for every whole step: by
+        the time elapsed, and the sweep's ground also by the distance driven."""
         if self.t_ns is None or t_ns > self.t_ns:
             self.t_ns = t_ns
-        if self._t_decayed_ns is None:
-            self._t_decayed_ns = self.t_ns
+        here = self.poses.newest()
+        if self._t_decayed_ns is None or self._decayed_at is None or here is None:
+            self._t_decayed_ns, self._decayed_at = self.t_ns, here
             return
         elapsed_s = (self.t_ns - self._t_decayed_ns) / NS_PER_S
         if elapsed_s >= self.config.decay_step_s and self.layers is not None:
-            self.layers.decay(
-                0.5 ** (elapsed_s / self._half_lives_s), 0.5 ** (elapsed_s / self.config.lane_half_life_s)
-            )
-            self._t_decayed_ns = self.t_ns
+            driven_m = math.hypot(here.east_m - self._decayed_at.east_m, here.north_m - self._decayed_at.north_m)
+            factors = 0.5 ** (elapsed_s / self._half_lives_s + driven_m / self._half_distances_m)
+            self.layers.decay(factors, 0.5 ** (elapsed_s / self.config.lane_half_life_s))
+            self._t_decayed_ns, self._decayed_at = self.t_ns, here
             self.stats.decays += 1
 
 

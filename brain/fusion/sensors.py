@@ -102,7 +102,9 @@ _SWEEP_LIDAR = {
     "detect_range_m": 60.0,
     # One sweep makes a hazard (the threshold is 1.39): the line lies on a ditch for 1.5 m of
     # travel, as few as one sweep when the machine is busy, and a lidar's 4 cm dip is no noise.
-    "hit_log_odds": 1.5,
+    # It stays one for 170 m driven or 4 min standing (fusion's sweep fades): the vehicle has to
+    # reach the ditch 37 m on, and may stop there to look for a way round.
+    "hit_log_odds": 2.5,
     "miss_log_odds": -0.4,
     "noise_m": 0.05,  # range noise and pose; the lidar already grows hazards by half a beam spacing
     "line_half_width_m": 0.3,  # half the ground the line moves over between sweeps at 25 m/s

@@ -21,8 +21,9 @@ returns of a kind make a stretch (low and high ones at most ``max_piece_m`` acro
 box in the vehicle frame:
 
 - level: the box around its returns;
-- low: from where the beams fell through z = -step_m to where they came back: the beams passed
-  above the ground all that way, so the ground there is provably lower than the plane by step_m;
+- low: from where the beams met the plane to where they came back: they passed above the ground
+  all that way, so the ground there is lower than the plane (by step_m from 0.7 m on; the drop
+  that took it lower begins at the plane or nearer, the way a ditch's near wall does);
 - high: around its returns (what lies behind is hidden).
 
 Low and high stretches reach half a beam spacing beyond their outermost returns, at those
@@ -170,8 +171,8 @@ def describe_sweep(
     half = mount.resolution_rad / 2
     reach = (mount.y_m + t * np.sin(b - half), mount.y_m + t * np.sin(b + half))
     kind = np.where(z < -step_m, LOW, np.where(z > step_m, HIGH, LEVEL))
-    # Where a low beam fell through z = -step_m: the near end of the ground it proved lower.
-    fell = mount.x_m + (mount.z_m + step_m) / returns.slopes * np.cos(b)
+    # Where a low beam met the plane: the ground beyond lay below it, so the drop began nearer.
+    met = mount.x_m + mount.z_m / returns.slopes * np.cos(b)
     stretches: list[GroundStretch] = []
     index = np.flatnonzero(np.isfinite(t))
     start = 0
@@ -185,7 +186,7 @@ def describe_sweep(
         ):
             end += 1
         run = index[start : end + 1]
-        stretches.append(_stretch(run, int(kind[run[0]]), x, y, z, fell, reach))
+        stretches.append(_stretch(run, int(kind[run[0]]), x, y, z, met, reach))
         start = end + 1
     return GroundSweep(sensor, tuple(stretches))
 
@@ -196,7 +197,7 @@ def _stretch(
     x: np.ndarray,
     y: np.ndarray,
     z: np.ndarray,
-    fell: np.ndarray,
+    met: np.ndarray,
     reach: tuple[np.ndarray, np.ndarray],
 ) -> GroundStretch:
     """The box of the returns ``run`` (consecutive beams of one kind)."""
@@ -204,5 +205,5 @@ def _stretch(
         return GroundStretch(float(x[run].min()), float(x[run].max()), float(y[run].min()), float(y[run].max()), 0.0)
     right, left = float(reach[0][run].min()), float(reach[1][run].max())
     if kind == LOW:
-        return GroundStretch(float(fell[run].min()), float(x[run].max()), right, left, float(z[run].min()))
+        return GroundStretch(float(met[run].min()), float(x[run].max()), right, left, float(z[run].min()))
     return GroundStretch(float(x[run].min()), float(x[run].max()), right, left, float(z[run].max()))

@@ -51,19 +51,70 @@ def test_one_sweep_lands_a_wash_to_its_ends_and_clears_the_ground_beside_it() ->
     assert probability_at(cost_map, *enu_of(EAST, NORTH, YAW, 20.0, 8.3)) == pytest.approx(0.5)
 
 
-def test_the_ground_line_outlasts_obstacle_evidence() -> None:
+def wash_is_lethal(fusion: HazardFusion, x_m: float = LINE_M + 1.0, y_m: float = 3.0) -> bool:
+    """Whether the map holds the wash, at (x, y) of where the vehicle stood when the line crossed it."""
+    cost_map = fusion.cost_map()
+    row, col = cost_map.window.cell_of(*enu_of(EAST, NORTH, YAW, x_m, y_m))
+    return bool(cost_map.lethal[row, col])
+
+
+def test_one_sweep_of_the_wash_outlasts_obstacle_evidence_while_the_vehicle_stands() -> None:
     fusion = parked(EAST, NORTH, YAW)
-    wash_sweeps(fusion)
+    wash_sweeps(fusion, count=1)
     rock = (20.0, 3.0)
     for _ in range(4):
         fusion.add_obstacles(0, obstacles(Sensor.LIDAR_H_LEFT, box(*rock)))
-    assert fusion.config.sweep_half_life_s >= 3 * fusion.config.half_life_s
-    for t in range(100 * MS, 15_000 * MS + 1, 100 * MS):  # 15 s: three obstacle half-lives
+    for t in range(100 * MS, 120_000 * MS + 1, 100 * MS):  # two minutes standing, no sensor renewing either
         fusion.add_pose(t, state(EAST, NORTH, YAW))
+        if t == 15_000 * MS:  # three obstacle half-lives
+            assert probability_at(fusion.cost_map(), *enu_of(EAST, NORTH, YAW, *rock)) < 0.8
+    assert wash_is_lethal(fusion)
+
+
+def test_one_sweep_of_the_wash_lasts_while_the_vehicle_drives_up_and_looks_for_a_way_round() -> None:
+    fusion = parked(EAST, NORTH, YAW)
+    wash_sweeps(fusion, count=1)
+    # On to 4 m short of the wash in 10 s, then 60 m of searching back and forth beside it.
+    t, travelled = 0, 0.0
+    legs = [(0.0, LINE_M - 4.0, 100)] + [(LINE_M - 4.0, LINE_M - 14.0, 50), (LINE_M - 14.0, LINE_M - 4.0, 50)] * 3
+    for begin, stop, steps in legs:
+        for x in np.linspace(begin, stop, steps + 1)[1:]:
+            t += 100 * MS
+            fusion.add_pose(t, state(*enu_of(EAST, NORTH, YAW, float(x), 0.0), YAW))
+        travelled += abs(stop - begin)
+    assert travelled > 90.0
+    assert wash_is_lethal(fusion)
+
+
+def test_the_sweeps_ground_fades_with_the_distance_driven() -> None:
+    slow = parked(EAST, NORTH, YAW, sweep_half_distance_m=10.0)
+    wash_sweeps(slow, count=1)
+    assert slow.layers is not None
+    held = float(slow.layers.evidence[SensorClass.LIDAR_SWEEP].max())
+    for step in range(1, 11):  # 10 m on in 1 s: one half-distance, a negligible part of the half-life
+        slow.add_pose(step * 100 * MS, state(*enu_of(EAST, NORTH, YAW, float(step), 0.0), YAW))
+    faded = float(slow.layers.evidence[SensorClass.LIDAR_SWEEP].max())
+    assert faded == pytest.approx(held / 2.0, rel=0.01)
+
+
+@pytest.mark.parametrize("metres_per_sweep", [0.36, 1.1])  # 30 mph at 37.5 Hz; a starved lidar's 110 ms
+def test_sweeps_driving_up_to_the_wash_map_its_near_edge(metres_per_sweep: float) -> None:
+    """The near wall: the beams that fall into the wash came back only from 0.7 m past where they
+    met the plane, and the vehicle reaches the near wall first."""
+    near_m = 60.0  # the wash's near edge, ahead of the first pose
+    centre = enu_of(EAST, NORTH, YAW, near_m + 1.25, 0.0)
+    wash = TerrainHazard("wash", HazardKind.DITCH, *centre, YAW, length_m=2.5, width_m=14.0, magnitude_m=0.7)
+    fusion = parked(EAST, NORTH, YAW)
+    rng = np.random.default_rng(3)
+    for step, x in enumerate(np.arange(0.0, near_m - LINE_M + 4.0, metres_per_sweep), start=1):
+        east, north = enu_of(EAST, NORTH, YAW, float(x), 0.0)
+        fusion.add_pose(step * 27 * MS, state(east, north, YAW))
+        returns = sweep_scan([wash], Scene.from_obstacles(()), Pose2D(east, north, YAW), SWEEP_MOUNT, rng)
+        assert fusion.add_ground_sweep(step * 27 * MS, describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP)))
     cost_map = fusion.cost_map()
-    assert probability_at(cost_map, *enu_of(EAST, NORTH, YAW, *rock)) < 0.8  # faded from lethal
-    row, col = cost_map.window.cell_of(*enu_of(EAST, NORTH, YAW, LINE_M + 1.0, 3.0))
-    assert cost_map.lethal[row, col]  # the wash is still there
+    for lateral in np.arange(-6.5, 6.6, 0.5):
+        row, col = cost_map.window.cell_of(*enu_of(EAST, NORTH, YAW, near_m + 0.05, float(lateral)))
+        assert cost_map.lethal[row, col], f"the wash's near edge at {lateral:+.1f} m is not a hazard"
 
 
 def test_bad_stretches_are_counted_and_dropped() -> None:
