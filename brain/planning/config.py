@@ -20,11 +20,15 @@ class PlannerConfig:
     vehicle_width_m: float = setting(1.2, "overall width of the vehicle footprint")
     vehicle_length_m: float = setting(2.1, "overall length of the vehicle footprint")
     rear_overhang_m: float = setting(0.4, "rear axle (the pose's reference point) to the rear end")
-    margin_m: float = setting(0.4, "extra clearance to lethal cells beyond the vehicle's half width")
-    corridor_margin_m: float = setting(0.0, "extra clearance to the corridor edge beyond the vehicle's half width")
+    # What the margins are for: the INS errs 5-8 cm RMS across the track (up to 0.16 m), on both
+    # sides; the map already grows hazards by their sensors' noise, the corridor edge is exact.
+    margin_m: float = setting(0.3, "extra clearance to lethal cells beyond the vehicle's half width")
+    corridor_margin_m: float = setting(0.1, "extra clearance to the corridor edge beyond the vehicle's half width")
     horizon_m: float = setting(80.0, "length of the published path ahead of the vehicle")
     point_spacing_m: float = setting(1.0, "spacing of the published path points")
-    check_spacing_m: float = setting(0.25, "spacing of the samples a path is checked at")
+    check_spacing_m: float = setting(
+        0.1, "spacing of the samples a path is checked at: half of it is given up to each side of a gap"
+    )
     station_behind_m: float = setting(15.0, "how far behind the previous station the vehicle is searched for")
     station_ahead_m: float = setting(60.0, "how far ahead of the previous station the vehicle is searched for")
     max_path_deviation_m: float = setting(2.0, "re-plan when the vehicle is further than this from its path")

@@ -95,13 +95,14 @@ def chicane(grid: Map) -> Map:
 
 
 def test_a_wash_across_the_road_is_passed_through_the_strip_beside_it_at_speed() -> None:
-    """A ditch across the corridor leaves a strip 2.2 m wide at each side: only offsets within
-    0.3 m of 8.2 m pass the gate, between the regular 0.5 m offset steps. A gap-centred offset
-    swerves through it without dropping to the search's slow mode."""
+    """A ditch across the corridor, mapped 0.2 m wider than the default scenario's wash at each
+    end, leaves a strip 1.9 m wide at each side: only offsets within about 0.1 m of 8.3 m pass the
+    gate, between the regular 0.5 m offset steps. A gap-centred offset swerves through it without
+    dropping to the search's slow mode."""
     p = planner()
     grid = field()
     plan(p, grid, Pose(100.0, 0.0, 0.0, 10.0))
-    grid.box(150.0, -7.0, 152.5, 7.0)
+    grid.box(150.0, -7.2, 152.5, 7.2)
     result = plan(p, grid, Pose(101.0, 0.0, 0.0, 10.0))
     points = path_points(result.path)
     assert result.mode is PlanMode.REPLAN and not result.slow_mode
@@ -151,12 +152,12 @@ def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
 
 
 def test_a_gap_narrower_than_the_lattice_is_found_cell_by_cell() -> None:
-    """Lethal cell centres 2.8 m apart across a wall leave one row of free cells for the search
-    (clearance plus slack is 1.27 m each side), at north 0.3: off the stride-3 lattice through
+    """Lethal cell centres 2.4 m apart across a wall leave one row of free cells for the search
+    (clearance plus slack is 1.09 m each side), at north 0.3: off the stride-3 lattice through
     the vehicle's row (0.1, 0.7, ...). The search retries on every cell and gets through.
-    Candidates are held to the centre line here, which passes the gap 1.1 m from a wall cell."""
+    Candidates are held to the centre line here, which passes the gap 0.9 m from a wall cell."""
     p = planner(max_offsets=1, max_gap_offsets=0)
-    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -1.0, 142.0, 1.6)
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -0.8, 142.0, 1.4)
     assert CONFIG.search_stride == 3
     result = plan(p, grid, Pose(130.0, 0.0, 0.0, 2.0))
     points = path_points(result.path)
