@@ -284,7 +284,7 @@ class HazardFusion:
         # are drawn last, over any level ground they overlap.
         half = model.line_half_width_m
         last = self._sweep_poses.get(message.sensor)
-        moved_m = math.hypot(pose.east_m - last.east_m, pose.north_m - last.north_m) if last else 0.0
+        moved_m = _distance_m(last, pose) if last else 0.0
         self._sweep_poses[message.sensor] = pose
         back_m = min(max(half, moved_m), MAX_SWEEP_GAP_M)
         self.stamp.fill(
@@ -388,17 +388,22 @@ class HazardFusion:
         the time elapsed, and the sweep's ground also by the distance driven."""
         if self.t_ns is None or t_ns > self.t_ns:
             self.t_ns = t_ns
-        here = self.poses.newest()
-        if self._t_decayed_ns is None or self._decayed_at is None or here is None:
-            self._t_decayed_ns, self._decayed_at = self.t_ns, here
+        if self._t_decayed_ns is None or self._decayed_at is None:
+            self._t_decayed_ns, self._decayed_at = self.t_ns, self.poses.newest()
             return
         elapsed_s = (self.t_ns - self._t_decayed_ns) / NS_PER_S
         if elapsed_s >= self.config.decay_step_s and self.layers is not None:
-            driven_m = math.hypot(here.east_m - self._decayed_at.east_m, here.north_m - self._decayed_at.north_m)
+            here = self.poses.newest()
+            assert here is not None  # the layers exist from the first pose on
+            driven_m = _distance_m(self._decayed_at, here)
             factors = 0.5 ** (elapsed_s / self._half_lives_s + driven_m / self._half_distances_m)
             self.layers.decay(factors, 0.5 ** (elapsed_s / self.config.lane_half_life_s))
             self._t_decayed_ns, self._decayed_at = self.t_ns, here
             self.stats.decays += 1
+
+
+def _distance_m(a: Pose, b: Pose) -> float:
+    return math.hypot(b.east_m - a.east_m, b.north_m - a.north_m)
 
 
 def _nearest_m(boxes: np.ndarray, x_m: float, y_m: float) -> np.ndarray:

@@ -150,20 +150,12 @@ class Stamp:
         return (slice(r0, r1), slice(c0, c1)) if r0 < r1 and c0 < c1 else None
 
     def fill(self, polygons: FloatArray, value: float) -> None:
-        """Fill (n, k, 2) ENU polygons with ``value``, each polygon on its own: cv2.fillPoly given
-        several at once fills by crossings, so where two overlap it leaves a hole."""
-        if not len(polygons):
-            return
-        cells = self._cells(polygons)
-        (x0, y0), (x1, y1) = cells.min(axis=(0, 1)).tolist(), cells.max(axis=(0, 1)).tolist()
-        if not -_FAR_CELLS <= min(x0, y0) <= max(x1, y1) <= _FAR_CELLS:
-            np.clip(cells, -_FAR_CELLS, _FAR_CELLS, out=cells)
-        if self._touch(x0, x1, y0, y1):
-            for polygon in self._fixed(cells):
-                cv2.fillPoly(self._scratch, [polygon], float(value), cv2.LINE_8, _SHIFT)
+        """Fill (n, k, 2) ENU polygons with ``value``."""
+        self.fill_each(polygons, np.full(len(polygons), value))
 
     def fill_each(self, polygons: FloatArray, values: FloatArray) -> None:
-        """Fill (n, k, 2) ENU polygons, each with its own value."""
+        """Fill (n, k, 2) ENU polygons, each with its own value and in its own cv2 call: given
+        several at once, cv2.fillPoly fills by crossings, so where two overlap it leaves a hole."""
         if not len(polygons):
             return
         cells = self._cells(polygons)
