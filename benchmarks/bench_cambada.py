@@ -46,7 +46,7 @@ from modules.esvs.settings import EsvsConfig
 from modules.sim.scenario import load_scenario
 from protocol.auth import Keyring
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.module import Runtime
 
 FRAMES = 6
@@ -133,7 +133,7 @@ def run_esvs(config: EsvsConfig, duration_s: float, kills: int = 0) -> TimedEsvs
     # A private loopback multicast bus, not mem://: that one never blocks in poll, so the
     # Runtime would spin, and a spinning real-time round gets throttled by the kernel.
     url = f"udpm://239.255.{random.randint(0, 255)}.{random.randint(1, 254)}:{random.randrange(20000, 60000, 16)}?ttl=0"
-    runtime = Runtime(Bus.open(url, source_id=20, clock=WallClock(), keyring=Keyring.generate()), WallClock())
+    runtime = Runtime(Bus.open(url, source_id=20, clock=MasterClock(), keyring=Keyring.generate()), MasterClock())
     esvs = TimedEsvs(config, runtime)
     if kills:
         start: list[float] = []

@@ -7,6 +7,7 @@ the time service's timeline: int64 nanoseconds since the Unix epoch.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 from rascal.timesync import TimeSyncEstimator
@@ -30,24 +31,6 @@ class Clock(Protocol):
         """Whether shared time is known well enough to judge other nodes' timestamps."""
 
 
-class WallClock:
-    """The time master's clock: system real time is shared time by definition."""
-
-    synced = True
-
-    def now_ns(self) -> int:
-        return time.time_ns()
-
-    def local_ns(self) -> int:
-        return time.time_ns()
-
-    def to_shared(self, local_ns: int) -> int:
-        return local_ns
-
-    def from_realtime(self, realtime_ns: int) -> int:
-        return realtime_ns
-
-
 class MonotonicLocal:
     """A local timeline immune to wall-clock steps, anchored near real time at start so that
     an unsynchronised node on the master's host is already close to shared time."""
@@ -57,6 +40,30 @@ class MonotonicLocal:
 
     def __call__(self) -> int:
         return time.monotonic_ns() + self._anchor
+
+
+class MasterClock:
+    """The time master's clock. Shared time is real time as read when the master started, carried
+    on by the monotonic clock: NTP still disciplines its rate, but a step of the host's wall clock
+    (NTP, or a VM's agent, setting it) does not step the whole fleet's time. Every client would
+    first see that step as stale or future messages, and then take a step window to follow it."""
+
+    synced = True
+
+    def __init__(self) -> None:
+        self._local = MonotonicLocal()
+
+    def now_ns(self) -> int:
+        return self._local()
+
+    def local_ns(self) -> int:
+        return self._local()
+
+    def to_shared(self, local_ns: int) -> int:
+        return local_ns
+
+    def from_realtime(self, realtime_ns: int) -> int:
+        return _realtime_to_local(realtime_ns, self._local)
 
 
 class SkewedLocal:
@@ -89,8 +96,7 @@ class SharedClock:
         return self.estimator.to_shared(local_ns)
 
     def from_realtime(self, realtime_ns: int) -> int:
-        # The two timelines differ by a constant (or, skewed, slowly): read both now.
-        return realtime_ns + self.local_ns() - time.time_ns()
+        return _realtime_to_local(realtime_ns, self.local_ns)
 
     @property
     def synced(self) -> bool:
@@ -119,3 +125,8 @@ class ManualClock:
 
     def advance(self, dt_ns: int) -> None:
         self.t_ns += dt_ns
+
+
+def _realtime_to_local(realtime_ns: int, local: Callable[[], int]) -> int:
+    # The two timelines differ by a constant (or, skewed, slowly): read both now.
+    return realtime_ns + local() - time.time_ns()

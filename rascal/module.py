@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 from protocol import channels
 from protocol.messages import HealthEvent, ModuleState, ModuleStatus, Severity
 from rascal.bus import Bus
-from rascal.clock import Clock, SharedClock, SkewedLocal, WallClock
+from rascal.clock import Clock, MasterClock, SharedClock, SkewedLocal
 from rascal.rtdb import Latest
 from rascal.sdnotify import Notifier
 from rascal.timeclient import TimeClient, TimeMaster
@@ -250,10 +250,10 @@ class Runtime:
 
 
 def make_clock(time_master: bool, clock_offset_ms: float = 0.0, clock_drift_ppm: float = 0.0) -> Clock:
-    """The master reads wall time; everyone else synchronises to it (optionally through a
-    deliberately skewed local clock, for fault tests)."""
+    """The master keeps real time from its start; everyone else synchronises to it (optionally
+    through a deliberately skewed local clock, for fault tests)."""
     if time_master:
-        return WallClock()
+        return MasterClock()
     if clock_offset_ms or clock_drift_ppm:
         return SharedClock(local=SkewedLocal(int(clock_offset_ms * 1e6), clock_drift_ppm))
     return SharedClock()

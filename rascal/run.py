@@ -106,12 +106,12 @@ class RunSupervisor(Supervisor):
         self.live.start()
 
     def on_vehicle_state(self, state: VehicleState, _envelope: Envelope) -> None:
-        self.state = state
-        if self.frame is not None:
-            s, _ = self.frame.locate(state.east_m, state.north_m, self.station_m)
-            self.station_m = float(s)
+        self.state = state  # located on the course at the view's rate, not the INS's 100 Hz
 
     def refresh(self) -> None:
+        if self.frame is not None and self.state is not None:
+            s, _ = self.frame.locate(self.state.east_m, self.state.north_m, self.station_m)
+            self.station_m = float(s)
         if self.live is not None:
             self.live.update(self.view())
         elapsed = time.monotonic() - self.started_s

@@ -128,12 +128,12 @@ class TimeSyncEstimator:
         contradicts = self._contradicts(sample)
         self._recent.append((sample, contradicts))
         if contradicts:
-            since_step = self._confirmed_step()
-            if since_step is None:
+            restart_from = self._confirmed_step() or self._lost()
+            if restart_from is None:
                 self._rejected += 1
                 return False
             # Older samples describe a clock relation that is gone.
-            self._window = since_step
+            self._window = restart_from
             self._recent.clear()
             self._resets += 1
         else:
@@ -146,6 +146,13 @@ class TimeSyncEstimator:
     def synced(self) -> bool:
         """SYNCED or HOLDOVER: cheap enough for every bus poll (status() is not)."""
         return self._model is not None and len(self._window) >= self._cfg.min_samples
+
+    @property
+    def settled(self) -> bool:
+        """Synced on a full step window of samples, none of which contradicted the model: the
+        estimate can coast on fewer exchanges (a client may ask less often)."""
+        recent = self._recent
+        return self.synced and len(recent) == recent.maxlen and not any(flag for _sample, flag in recent)
 
     def to_shared(self, local_ns: int) -> int:
         """Map a local timestamp to shared time (identity until first sync)."""
@@ -223,6 +230,16 @@ class TimeSyncEstimator:
         bottom = max(s.lo - off_ref - b * (s.t4 - t_ref) for s in since)
         return since if bottom <= top + self._cfg.step_threshold_ns else None
 
+    def _lost(self) -> list[_Sample] | None:
+        """The recent samples, if every one of a full step window contradicted the model without
+        agreeing on a step: the master's clock is being jerked about (an agent stepping it to and
+        fro), and a model that rejects everything would coast on, ever more wrong, in holdover.
+        Starting again from them gives a fit whose error bound spans their disagreement."""
+        recent = self._recent
+        if len(recent) < recent.maxlen or not all(flag for _sample, flag in recent):
+            return None
+        return [s for s, _ in recent]
+
     def _evict(self) -> None:
         """Drop the least informative sample if over capacity, then stale ones."""
         cfg, window = self._cfg, self._window
@@ -297,6 +314,7 @@ def _fit_line(
     weight = np.exp(log_weight - log_weight.max())
     b = float(np.average(bs, weights=weight))
     a = float(np.average((top + bottom) / 2, weights=weight))
-    a_err = max(float(top.max()) - a, a - float(bottom.min()))
+    # Samples that no line fits leave top below bottom: the offset lies between them either way.
+    a_err = max(float(np.maximum(top, bottom).max()) - a, a - float(np.minimum(top, bottom).min()))
     b_err = max(float(bs[-1]) - b, b - float(bs[0])) + step
     return a, b, a_err, b_err

@@ -139,7 +139,11 @@ def choose(
     for i in index[np.lexsort((score, unsure, -clear_upto[index]))][:_MAX_PARTIAL]:
         gated += 1
         profile = swerve(base, *(float(v) for v in params[i, :3]), return_m=float(params[i, 3]))
+        # Stop a turning radius and a nose short of the conflict: room to turn away towards the
+        # way past it, which a vehicle that cannot reverse needs once it stands there.
         keep = int(clear_upto[i])
+        if keep < len(s):
+            keep = int(np.searchsorted(s, s[keep] - gate.nose_m - config.turning_radius_m, side="right"))
         points = np.column_stack(frame.to_enu(s[:keep], profile.at(s[:keep])[0]))
         cut = _clear_prefix(gate, points, min_length_m)
         if cut is not None:

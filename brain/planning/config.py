@@ -1,8 +1,9 @@
 """The planner's settings, with units in the names, and the vehicle dimensions they start from.
 
-The footprint defaults are those of the simulated ATV (``modules.sim.vehicle.VehicleParams``:
-1.2 m wide, 2.1 m long, rear axle 0.4 m from the back); the planner does not import the
-simulator, so a test keeps the two in step.
+The footprint and steering defaults are those of the simulated ATV
+(``modules.sim.vehicle.VehicleParams``: 1.2 m wide, 2.1 m long, rear axle 0.4 m from the back,
+1.25 m wheelbase, wheels to 0.5 rad at 0.8 rad/s); the planner does not import the simulator,
+so a test keeps the two in step.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+from brain.planning.pursuit import Bicycle
 from rascal.config import setting
 
 
@@ -20,9 +22,14 @@ class PlannerConfig:
     vehicle_width_m: float = setting(1.2, "overall width of the vehicle footprint")
     vehicle_length_m: float = setting(2.1, "overall length of the vehicle footprint")
     rear_overhang_m: float = setting(0.4, "rear axle (the pose's reference point) to the rear end")
-    # What the margins are for: the INS errs 5-8 cm RMS across the track (up to 0.16 m), on both
-    # sides; the map already grows hazards by their sensors' noise, the corridor edge is exact.
-    margin_m: float = setting(0.3, "extra clearance to lethal cells beyond the vehicle's half width")
+    wheelbase_m: float = setting(1.25, "rear axle to front axle: with the steering, how tight it turns")
+    max_steering_rad: float = setting(0.5, "front wheel angle limit, either side")
+    max_steering_rate_radps: float = setting(0.8, "how fast the steering actuator turns the wheels")
+    # What the margins are for: the INS errs across the track, 3-8 cm RMS and up to 0.16 m, against
+    # the exact corridor edge. Hazards are mapped in the INS's own frame, so against them only its
+    # drift since they were seen counts: 2.5 cm RMS over 5 s, at most 0.13 m (measured in the wash
+    # test); the map grows them by their sensors' noise besides.
+    margin_m: float = setting(0.15, "extra clearance to lethal cells beyond the vehicle's half width")
     corridor_margin_m: float = setting(0.1, "extra clearance to the corridor edge beyond the vehicle's half width")
     horizon_m: float = setting(80.0, "length of the published path ahead of the vehicle")
     point_spacing_m: float = setting(1.0, "spacing of the published path points")
@@ -64,12 +71,19 @@ class PlannerConfig:
         3, "A* lattice step in grid cells (1 = every cell); a channel it misses gets finer ones, down to every cell"
     )
     search_cost_weight: float = setting(1.0, "A* step cost: length x (1 + weight x footprint-mean cost)")
+    search_room_m: float = setting(
+        2.0, "A* steps closer than this beyond the gate's clearance to a lethal cell cost more: room to turn"
+    )
+    search_room_weight: float = setting(2.0, "...up to this much more per metre at the clearance itself")
     search_unseen_cost: float = setting(
         1.0,
         "A* heuristic: the cost assumed for every cell to the goal, as if unseen (Kratos; fusion's cost at p = 0.5)",
     )
     search_heuristic_weight: float = setting(1.5, "A* heuristic inflation on top (>1 trades optimality for speed)")
     goal_margin_m: float = setting(2.0, "the search goal stays this far inside the grid window")
+    pursuit_lookahead_m: float = setting(
+        2.0, "a searched path is published as the track pure pursuit this far ahead makes"
+    )
     cost_cap: float = setting(10.0, "finite stand-in for lethal and very high costs in the footprint sums")
     # Speeds.
     slow_speed_mps: float = setting(1.0, "speed commanded when no candidate is left (RASCAL's 1 m/s)")
@@ -115,6 +129,11 @@ class PlannerConfig:
             "max_lateral_accel_mps2",
             "curvature_window_m",
             "cost_cap",
+            "wheelbase_m",
+            "max_steering_rate_radps",
+            "pursuit_lookahead_m",
+            "slow_speed_mps",
+            "search_room_m",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -129,6 +148,8 @@ class PlannerConfig:
             raise ValueError("PlannerConfig.max_transition_m: must not be below min_transition_m")
         if self.check_spacing_m > self.point_spacing_m:
             raise ValueError("PlannerConfig.check_spacing_m: must not exceed point_spacing_m")
+        if not 0.0 < self.max_steering_rad < math.pi / 2:
+            raise ValueError("PlannerConfig.max_steering_rad: must be in (0, pi/2)")
         if not 0.0 < self.caution_probability <= 1.0:
             raise ValueError("PlannerConfig.caution_probability: must be in (0, 1]")
 
@@ -145,3 +166,19 @@ class PlannerConfig:
     def corridor_clearance_m(self) -> float:
         """Least distance from the path to the corridor's edge."""
         return self.half_width_m + self.corridor_margin_m
+
+    @property
+    def turning_radius_m(self) -> float:
+        """The rear axle's tightest turn."""
+        return self.wheelbase_m / math.tan(self.max_steering_rad)
+
+    @property
+    def bicycle(self) -> Bicycle:
+        """The vehicle as a searched path's track is driven: at slow speed, by pure pursuit."""
+        return Bicycle(
+            wheelbase_m=self.wheelbase_m,
+            max_steering_rad=self.max_steering_rad,
+            max_steering_rate_radps=self.max_steering_rate_radps,
+            speed_mps=self.slow_speed_mps,
+            lookahead_m=self.pursuit_lookahead_m,
+        )

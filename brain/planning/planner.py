@@ -10,11 +10,13 @@ RASCAL's behaviour (paper II.C), with Kratos' search (4.5.3) as the fallback:
 2. Otherwise generate candidates from the current speed and take the cheapest that passes
    (`brain.planning.candidates`). New ``path_id``. If none passes for the whole horizon, one that
    is clear well beyond the stopping distance will do, ending in a stop short of the hazard, as
-   long as the cells show a way past it (and never to leave slow mode).
+   long as the cells show a way past it (and never to leave slow mode); nearing that stop, a
+   search that gets through takes over while there is still room to turn.
 3. If none is left, command ``slow_speed_mps`` (slow mode) and search a way with A* over the
    footprint-cost grid to the furthest reachable goal along the course in the window, smoothed
-   (`brain.planning.search`, `brain.planning.smoothing`). A search path that reached its goal
-   is kept while it stays clear; candidates are tried again every cycle to leave slow mode.
+   (`brain.planning.search`, `brain.planning.smoothing`), and publish the track the vehicle
+   makes along it (`brain.planning.pursuit`). A search path that reached its goal is kept while
+   it stays clear; candidates are tried again every cycle to leave slow mode.
 4. If nothing is reachable, stand still: a one-point path at speed 0, in slow mode. So does a
    map window that does not contain the vehicle, and the end of the course.
 
@@ -43,6 +45,7 @@ from brain.planning.config import PlannerConfig
 from brain.planning.frame import CorridorFrame
 from brain.planning.hazards import HazardField
 from brain.planning.profile import LateralProfile, swerve
+from brain.planning.pursuit import pursue
 from brain.planning.search import Lattice, SearchResult, search
 from brain.planning.smoothing import FreeCells, smooth
 from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, travel_time_s
@@ -53,6 +56,7 @@ FloatArray = NDArray[np.float64]
 _MAX_START_SLOPE = 1.0  # a start heading beyond 45 degrees off the course is taken as 45
 _MIN_PATH_M = 0.05  # shorter than this, a path is a stop
 _SAME_PATH_M = 0.01  # a re-plan this close to the current path everywhere keeps its id
+_TRACK_SPACING_M = 0.5  # a searched track's published points: chords within 1.4 cm of its tightest turn
 
 
 class PlanMode(enum.Enum):
@@ -203,6 +207,8 @@ class _Cycle:
         self.s0, self.d0 = s0, d0
         self._space: _SearchSpace | None = None
         self._way_through: bool | None = None
+        self._searched = False
+        self._found: tuple[FloatArray, bool, int] | None = None
 
     def run(self, s_end: float) -> PlanResult:
         cfg = self.cfg
@@ -237,7 +243,7 @@ class _Cycle:
             # Only worth it if there is a way past the hazard it stops short of, and never a way
             # out of slow mode: that takes a candidate clear all the way.
             slow = current is not None and current.polyline is not None
-            if slow or not self.way_through(s_end):
+            if slow or not self.way_through(s_end) or self.search_instead(choice.stations_m, s_end):
                 choice = dataclasses.replace(choice, profile=None)
         if choice.profile is not None and choice.points is not None and choice.stations_m is not None:
             chosen = choice.stations_m
@@ -355,7 +361,12 @@ class _Cycle:
         # Short of the goal, end nearest it, and among equals nearest the centre line.
         middle = (space.goal_a + space.goal_b) / 2.0
         shortfall = distance + 0.01 * np.hypot(east - middle[0], north - middle[1])
-        weight = 1.0 + cfg.search_cost_weight * self.gate.hazards.footprint_cost[rows, cols].astype(float)
+        hazards = self.gate.hazards
+        weight = 1.0 + cfg.search_cost_weight * hazards.footprint_cost[rows, cols].astype(float)
+        # Keep to the middle of gaps: a path hugging a wall round a corner is one the vehicle,
+        # turning no tighter than its radius, swings wide of (and into the wall).
+        spare = (hazards.clearance_m[rows + 1, cols + 1] - cfg.clearance_m) / cfg.search_room_m
+        weight += cfg.search_room_weight * np.clip(1.0 - spare, 0.0, 1.0)
         return search(
             lattice,
             lattice.node_of(space.start),
@@ -389,8 +400,28 @@ class _Cycle:
         near = _distance_to_segment(east, north, space.goal_a, space.goal_b) <= reach
         return bool(np.any(labels[rows, cols][near] == labels[space.start]))
 
+    def search_instead(self, partial_stations: FloatArray | None, s_end: float) -> bool:
+        """Whether to leave a partial path for a search that gets through: once its stop is
+        within braking distance plus room to turn (a nose and two turning radii) the vehicle
+        must start turning towards the way past, or it stands boxed in where it cannot."""
+        cfg = self.cfg
+        if partial_stations is None or len(partial_stations) == 0:
+            return False
+        left = float(partial_stations[-1]) - self.s0
+        room = self.speed**2 / (2.0 * cfg.max_decel_mps2) + self.gate.nose_m + 2.0 * cfg.turning_radius_m
+        if left > room:
+            return False
+        found = self.search_path(s_end)
+        return found is not None and found[1]
+
     def search_path(self, s_end: float) -> tuple[FloatArray, bool, int] | None:
-        """A* from the vehicle's cell to the furthest goal in the window, smoothed and gated."""
+        """A* from the vehicle's cell to the furthest goal in the window, smoothed and gated
+        (once a cycle: the partial path's check and the search step share it)."""
+        if not self._searched:
+            self._found, self._searched = self._search_path(s_end), True
+        return self._found
+
+    def _search_path(self, s_end: float) -> tuple[FloatArray, bool, int] | None:
         cfg, window = self.cfg, self.gate.hazards.window
         space = self.search_space(s_end)
         if space is None:
@@ -413,7 +444,11 @@ class _Cycle:
         if len(centres) < 2:
             return None
         for candidate in (smooth(centres, FreeCells(window, free)), centres):
-            points = _resample(candidate, cfg.point_spacing_m, cfg.check_spacing_m)
+            # What the vehicle drives along it, not the polyline itself, is published and gated.
+            track = pursue(candidate, self.east, self.north, self.yaw, cfg.bicycle)
+            if track is None or len(track) < 2:
+                continue
+            points = _decimate(track, _TRACK_SPACING_M)
             if self.gate.check(points).ok:
                 return points, reached, result.expansions
         return None
@@ -539,19 +574,13 @@ class _SearchSpace:
     free: NDArray[np.bool_]  # cells the search may use
 
 
-def _resample(points: FloatArray, spacing_m: float, check_spacing_m: float) -> FloatArray:
-    """The same polyline with points added so none are further apart than ``spacing_m``, placed
-    on the gate's own sample lattice of each segment so the gate sees exactly the samples the
-    smoothing checked."""
-    step = np.diff(points, axis=0)
-    length = np.hypot(step[:, 0], step[:, 1])
-    pieces = np.maximum(1, np.ceil(length / check_spacing_m - 1e-9).astype(np.intp))
-    per_point = max(1, math.floor(spacing_m / check_spacing_m + 1e-9))
-    out = [points[:1]]
-    for start, delta, count in zip(points[:-1], step, pieces, strict=True):
-        marks = np.append(np.arange(per_point, count, per_point), count) / count
-        out.append(start + marks[:, None] * delta)
-    return np.vstack(out)
+def _decimate(track: FloatArray, spacing_m: float) -> FloatArray:
+    """Every point of a finely stepped track at least ``spacing_m`` of arc after the last kept
+    one, and its end: chords of that length stay within spacing^2 / (8 R) of the arcs."""
+    step = np.hypot(*np.diff(track, axis=0).T)
+    along = np.concatenate(([0.0], np.cumsum(step)))
+    keep = np.unique(np.searchsorted(along, np.arange(0.0, along[-1], spacing_m)))
+    return np.vstack([track[keep], track[-1:]]) if keep[-1] != len(track) - 1 else track[keep]
 
 
 def _trim(polyline: FloatArray, point: FloatArray) -> tuple[FloatArray, float]:

@@ -45,6 +45,11 @@ WATCHES_PER_ROUND = 4
 RIG_SHAPE = (RASCAL_RIG.height_px, RASCAL_RIG.width_px)  # frames of another size are not processed
 
 
+def _newer(exposed_ns: int, pending: Pending | None, sent_ns: int) -> bool:
+    """Whether a report of the frame exposed at ``exposed_ns`` replaces what waits to be sent."""
+    return exposed_ns != sent_ns and (pending is None or exposed_ns > pending.t_exposure_ns)
+
+
 class Pending(NamedTuple):
     """A completed report waiting for the round's send step."""
 
@@ -70,6 +75,11 @@ class Esvs(Module):
         self.handed = True  # the grabbed frame went to the worker (or there is none)
         self.pending_obstacles: Pending | None = None  # the last completed reports, not yet sent
         self.pending_lanes: Pending | None = None
+        # Exposure of the last report sent on each channel: a frame reported twice (its worker
+        # died as the report came in, and the replacement got the frame too) is sent once. Only
+        # equal, not older: a time master restarted on another clock may step shared time back.
+        self.sent_obstacles_ns = -1
+        self.sent_lanes_ns = -1
         self.frames_grabbed = 0
         self.frames_unseen = 0  # written by the camera between two grabs
         self.frames_processed = 0
@@ -175,9 +185,9 @@ class Esvs(Module):
         if report.role in ("vision", "obstacles"):
             self.frames_processed += 1
         exposed = report.t_exposure_ns
-        if report.obstacles is not None and (self.pending_obstacles is None or exposed > self.pending_obstacles[1]):
+        if report.obstacles is not None and _newer(exposed, self.pending_obstacles, self.sent_obstacles_ns):
             self.pending_obstacles = Pending(report.obstacles, exposed)
-        if report.lanes is not None and (self.pending_lanes is None or exposed > self.pending_lanes[1]):
+        if report.lanes is not None and _newer(exposed, self.pending_lanes, self.sent_lanes_ns):
             self.pending_lanes = Pending(report.lanes, exposed)
 
     def _grab(self) -> None:
@@ -209,11 +219,11 @@ class Esvs(Module):
         obstacles, lanes = self.pending_obstacles, self.pending_lanes
         if obstacles is not None:
             self.bus.publish(channels.OBSTACLES_ESVS, obstacles.message, t_meas_ns=obstacles.t_exposure_ns)
-            self.pending_obstacles = None
+            self.pending_obstacles, self.sent_obstacles_ns = None, obstacles.t_exposure_ns
             self.reports_sent += 1
         if lanes is not None:
             self.bus.publish(channels.LANE_BORDERS, lanes.message, t_meas_ns=lanes.t_exposure_ns)
-            self.pending_lanes = None
+            self.pending_lanes, self.sent_lanes_ns = None, lanes.t_exposure_ns
         self.runtime.state = self._state()
 
     def _process(self) -> None:

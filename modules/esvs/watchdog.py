@@ -3,6 +3,12 @@
 and puts another in its place, while the ESVS process itself keeps running its round and
 heartbeat.
 
+A worker past its time is not hung while it still wants a CPU (a thread in state R) and has
+used less than its hang timeout of CPU since the time being judged began: an overloaded machine
+starves a working worker, and killing it for that only costs a frame and a cold start on top. A
+worker that sleeps or blocks without a result is hung at its timeout; one that spins, once it has
+burnt that much CPU.
+
 Each role keeps a hot spare: a standby worker already started, attached to the frame ring and
 waiting. Replacing a failed worker is one ``Activate`` message to the spare; a new spare is then
 started off the critical path. Workers start from a fork server that has the vision code
@@ -13,13 +19,14 @@ start.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.context import BaseContext
 from multiprocessing.process import BaseProcess
-from typing import Any
+from typing import Any, NamedTuple
 
 from modules.esvs.worker import Activate, Hello, Inject, Process, Report, Retime, SetParams, WorkerSpec, run_worker
 from protocol.messages import Severity
@@ -52,6 +59,33 @@ def _main_module() -> list[str]:
     if not name or name == "__main__" or name.endswith(".__main__"):
         return []
     return [name]
+
+
+class Threads(NamedTuple):
+    """What the kernel says of a process's threads: CPU time used, and whether any wants a CPU."""
+
+    cpu_ns: int
+    runnable: bool
+
+
+def threads_of(pid: int) -> Threads:
+    """The CPU time of every thread of ``pid`` (``/proc/PID/task/TID/schedstat``) and whether
+    one is running or waiting to (state R). Nothing known (not Linux, or gone): no CPU, not
+    runnable, so no starvation is excused."""
+    cpu_ns, runnable = 0, False
+    try:
+        threads = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return Threads(0, False)
+    for tid in threads:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat", "rb") as schedstat:
+                cpu_ns += int(schedstat.read().split()[0])
+            with open(f"/proc/{pid}/task/{tid}/stat", "rb") as stat:
+                runnable |= stat.read().rpartition(b")")[2].split()[0] == b"R"
+        except (OSError, ValueError, IndexError):
+            continue
+    return Threads(cpu_ns, runnable)
 
 
 class _Proc:
@@ -137,6 +171,7 @@ class Supervised:
         self.activated = False  # the active worker has been told to work and has said hello
         self.outstanding_since_ns: int | None = None  # round-activated: a frame handed over, no report yet
         self.last_seen_ns = 0  # end of the last activation (or the start): the grid's next slot is due after it
+        self.cpu_ns = 0  # the active worker's CPU time when the time being judged began
         self.restarts = 0
         self.crashes = 0
         self.hangs = 0
@@ -179,6 +214,7 @@ class Supervised:
         self.activated = proc.ready
         self.outstanding_since_ns = None
         self.last_seen_ns = self.now_ns()
+        self.cpu_ns = threads_of(proc.pid).cpu_ns
         proc.send(Activate())
 
     def send(self, message: Process | SetParams | Retime | Inject) -> bool:
@@ -196,6 +232,7 @@ class Supervised:
             return False
         if isinstance(message, Process):
             self.outstanding_since_ns = self.now_ns()
+            self.cpu_ns = threads_of(self.active.pid).cpu_ns
         return True
 
     def drain(self) -> tuple[list[Report], Hello | None]:
@@ -215,6 +252,7 @@ class Supervised:
                 reports.append(message)
                 self.outstanding_since_ns = None
                 self.last_seen_ns = message.finished_ns
+                self.cpu_ns = threads_of(active.pid).cpu_ns
                 self._recover(message)
             elif isinstance(message, Hello):
                 active.ready, active.scheduling = True, message.scheduling
@@ -250,14 +288,18 @@ class Supervised:
             waited = now - active.started_ns
             return f"did not start within {waited / 1e9:.1f} s" if waited > self.startup_timeout_ns else None
         if self.spec.periodic:
-            late = now - self.spec.activation_at_or_after(self.last_seen_ns)
-            if late > self.timeout_ns:
-                return f"hung: no result {late / 1e6:.0f} ms after its activation was due"
+            late, since = now - self.spec.activation_at_or_after(self.last_seen_ns), "its activation was due"
         elif self.outstanding_since_ns is not None:
-            late = now - self.outstanding_since_ns
-            if late > self.timeout_ns:
-                return f"hung: no result {late / 1e6:.0f} ms after it was handed a frame"
-        return None
+            late, since = now - self.outstanding_since_ns, "it was handed a frame"
+        else:
+            return None
+        if late <= self.timeout_ns:
+            return None
+        threads = threads_of(active.pid)
+        used = threads.cpu_ns - self.cpu_ns
+        if threads.runnable and used <= self.timeout_ns:
+            return None  # starved, not hung
+        return f"hung: no result {late / 1e6:.0f} ms after {since} ({used / 1e6:.0f} ms of CPU used)"
 
     def restart(self, reason: str) -> None:
         """Kill the active worker and put the spare (or, without a ready one, a new worker) in its place."""

@@ -15,7 +15,7 @@ from protocol.auth import Keyring, load_keyring
 from protocol.codec import Envelope
 from protocol.messages import ModuleStatus, ObstacleList
 from rascal.bus import Bus
-from rascal.clock import SharedClock, WallClock
+from rascal.clock import MasterClock, SharedClock
 from rascal.timeclient import TimeClient
 from rascal.timesync import SyncState
 from tests.conftest import ROOT, Processes
@@ -47,7 +47,7 @@ def rascal(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
 def test_modules_exchange_signed_messages_over_multicast(bus_url: str, key_file: Path, processes: Processes) -> None:
     processes.module("time_service")
     processes.module("beacon", "--set", "rate_hz=20")
-    bus = Bus.open(bus_url, source_id=900, clock=WallClock(), keyring=load_keyring(key_file))
+    bus = Bus.open(bus_url, source_id=900, clock=MasterClock(), keyring=load_keyring(key_file))
     received: list[tuple[ObstacleList, Envelope]] = []
     statuses: dict[str, ModuleStatus] = {}
     bus.subscribe(channels.OBSTACLES_BEACON, lambda msg, env: received.append((msg, env)))
@@ -66,12 +66,12 @@ def test_a_node_with_another_key_is_heard_by_no_one(
     bus_url: str, key_file: Path, processes: Processes, tmp_path: Path
 ) -> None:
     processes.module("beacon")
-    genuine = Bus.open(bus_url, source_id=901, clock=WallClock(), keyring=load_keyring(key_file))
+    genuine = Bus.open(bus_url, source_id=901, clock=MasterClock(), keyring=load_keyring(key_file))
     got: list[ObstacleList] = []
     genuine.subscribe(channels.OBSTACLES_BEACON, lambda msg, env: got.append(msg))
     listen(genuine, 1.0)
     got.clear()
-    spoofer = Bus.open(bus_url, source_id=3, clock=WallClock(), keyring=Keyring.generate())
+    spoofer = Bus.open(bus_url, source_id=3, clock=MasterClock(), keyring=Keyring.generate())
     fake = ObstacleList(7, 0, ())
     for _ in range(50):
         spoofer.publish(channels.OBSTACLES_BEACON, fake)
@@ -106,7 +106,7 @@ def test_a_skewed_node_still_stamps_shared_time(bus_url: str, key_file: Path, pr
     """A beacon whose local clock is 250 ms off and drifts 100 ppm publishes in shared time."""
     processes.module("time_service")
     processes.module("beacon", "--clock-offset-ms", "250", "--clock-drift-ppm", "100", "--set", "rate_hz=50")
-    bus = Bus.open(bus_url, source_id=903, clock=WallClock(), keyring=load_keyring(key_file))
+    bus = Bus.open(bus_url, source_id=903, clock=MasterClock(), keyring=load_keyring(key_file))
     lateness: list[int] = []
     bus.subscribe(channels.OBSTACLES_BEACON, lambda msg, env: lateness.append(env.recv_ns - env.t_pub_ns))
     listen(bus, 4.0)
@@ -137,7 +137,7 @@ def test_bus_tools_show_the_traffic_as_plain_lines(bus_url: str, key_file: Path,
 
 
 def test_bus_pub_reaches_a_subscriber(bus_url: str, key_file: Path) -> None:
-    bus = Bus.open(bus_url, source_id=904, clock=WallClock(), keyring=load_keyring(key_file))
+    bus = Bus.open(bus_url, source_id=904, clock=MasterClock(), keyring=load_keyring(key_file))
     got = []
     bus.subscribe(channels.WHEEL_SPEED, lambda msg, env: got.append(msg))
     pub = subprocess.Popen(
@@ -187,7 +187,10 @@ def test_zmq_bridge_carries_verified_messages_over_tcp(bus_url: str, key_file: P
     )
     try:
         ground = Bus.open(
-            "zmq://" + endpoint.removeprefix("tcp://"), source_id=905, clock=WallClock(), keyring=load_keyring(key_file)
+            "zmq://" + endpoint.removeprefix("tcp://"),
+            source_id=905,
+            clock=MasterClock(),
+            keyring=load_keyring(key_file),
         )
         got: list[ObstacleList] = []
         ground.subscribe(channels.OBSTACLES_BEACON, lambda msg, env: got.append(msg))

@@ -12,7 +12,7 @@ from protocol.auth import Keyring
 from protocol.messages import Obstacle, ObstacleList, WheelSpeed
 from protocol.transport import MemTransport, UdpMulticastTransport, UrlError, open_transport
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 
 
 def test_default_url_is_loopback_multicast(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -56,8 +56,8 @@ def receive(bus: Bus, want: int, timeout_s: float = 2.0) -> None:
 
 def test_multicast_on_loopback_delivers_to_every_subscriber(bus_url: str) -> None:
     keyring = Keyring.generate()
-    publisher = Bus.open(bus_url, source_id=1, clock=WallClock(), keyring=keyring)
-    receivers = [Bus.open(bus_url, source_id=2 + i, clock=WallClock(), keyring=keyring) for i in range(2)]
+    publisher = Bus.open(bus_url, source_id=1, clock=MasterClock(), keyring=keyring)
+    receivers = [Bus.open(bus_url, source_id=2 + i, clock=MasterClock(), keyring=keyring) for i in range(2)]
     got: list[list[ObstacleList]] = [[], []]
     for bus, inbox in zip(receivers, got, strict=True):
         bus.subscribe(channels.OBSTACLES_LIDAR, lambda msg, env, inbox=inbox: inbox.append(msg))
@@ -75,7 +75,7 @@ def test_poll_without_traffic_returns_at_once() -> None:
     bus = Bus.open(
         f"udpm://239.255.1.1:{random.randrange(20000, 60000, 16)}?ttl=0",
         source_id=5,
-        clock=WallClock(),
+        clock=MasterClock(),
         keyring=Keyring.generate(),
     )
     bus.subscribe(channels.WHEEL_SPEED, lambda msg, env: None)
@@ -87,10 +87,10 @@ def test_poll_without_traffic_returns_at_once() -> None:
 
 def test_unicast_peers_receive_without_joining_multicast(bus_url: str) -> None:
     keyring = Keyring.generate()
-    publisher = Bus.open(bus_url + "&peers=127.0.0.2", source_id=1, clock=WallClock(), keyring=keyring)
+    publisher = Bus.open(bus_url + "&peers=127.0.0.2", source_id=1, clock=MasterClock(), keyring=keyring)
     # A receiver on another group only hears the unicast copy sent to 127.0.0.2.
     other_group = bus_url.replace("udpm://239.", "udpm://238.") + "&peers=127.0.0.3"
-    receiver = Bus.open(other_group, source_id=2, clock=WallClock(), keyring=keyring)
+    receiver = Bus.open(other_group, source_id=2, clock=MasterClock(), keyring=keyring)
     got: list[WheelSpeed] = []
     receiver.subscribe(channels.WHEEL_SPEED, lambda msg, env: got.append(msg))
     publisher.publish(channels.WHEEL_SPEED, WheelSpeed(3.0, 10.0))

@@ -17,7 +17,7 @@ from protocol.codec import Codec, Envelope
 from protocol.messages import ImuSample, Obstacle, ObstacleList, TimeSync
 from rascal.bus import Bus
 from rascal.bustools import to_jsonable
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.logplay import Renumber, restamp
 from rascal.logtools import main, summarize
 from rascal.recording import RecordingWriter
@@ -147,7 +147,7 @@ def test_renumbering_keeps_gaps_and_collapses_restarts_and_reordering() -> None:
 
 def _listen(bus_url: str, key_file: Path) -> tuple[Bus, dict[str, list[tuple[Any, Envelope]]]]:
     """A synchronised receiver (the master's clock): it checks freshness as the stack's do."""
-    listener = Bus.open(bus_url, source_id=50, clock=WallClock(), keyring=load_keyring(key_file))
+    listener = Bus.open(bus_url, source_id=50, clock=MasterClock(), keyring=load_keyring(key_file))
     heard: dict[str, list[tuple[Any, Envelope]]] = defaultdict(list)
     for channel in (channels.IMU, channels.OBSTACLES_LIDAR, channels.TIME_SYNC):
         listener.subscribe(channel, lambda msg, env: heard[env.channel].append((msg, env)))

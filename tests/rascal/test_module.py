@@ -13,7 +13,7 @@ from protocol.auth import Keyring
 from protocol.messages import ModuleState, ModuleStatus
 from protocol.transport import MemTransport
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.config import setting
 from rascal.module import Module, Runtime
 
@@ -46,7 +46,7 @@ class Counter(Module):
 
 
 def make_runtime(hub: str, source_id: int, keyring: Keyring) -> Runtime:
-    return Runtime(Bus(MemTransport(hub), source_id, keyring, WallClock()), WallClock())
+    return Runtime(Bus(MemTransport(hub), source_id, keyring, MasterClock()), MasterClock())
 
 
 def test_tasks_run_at_their_period_higher_priority_first() -> None:
@@ -62,7 +62,7 @@ def test_tasks_run_at_their_period_higher_priority_first() -> None:
 def test_heartbeat_reports_state_and_stale_inputs() -> None:
     keyring = Keyring.generate()
     hub = uuid.uuid4().hex
-    listener = Bus(MemTransport(hub), 41, keyring, WallClock())
+    listener = Bus(MemTransport(hub), 41, keyring, MasterClock())
     statuses: list[ModuleStatus] = []
     listener.subscribe(channels.MODULE_STATUS, lambda msg, env: statuses.append(msg))
     runtime = make_runtime(hub, 40, keyring)

@@ -22,7 +22,7 @@ from protocol.errors import ProtocolError
 from protocol.messages import ActuatorCommand
 from protocol.replay import ReplayLimits
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.recording import RecordingWriter
 from rascal.spoof import DEFAULT_SOURCE_ID, Forger, SpoofError, fake_message, loopback_only, spoof
 from tests.conftest import ROOT
@@ -37,7 +37,7 @@ class Receiver:
 
     def __init__(self, bus_url: str, key_file: Path, channel: str, **options: Any) -> None:
         self.bus = Bus.open(
-            bus_url, source_id=RECEIVER_ID, clock=WallClock(), keyring=load_keyring(key_file), **options
+            bus_url, source_id=RECEIVER_ID, clock=MasterClock(), keyring=load_keyring(key_file), **options
         )
         self.delivered = 0
         self.bus.subscribe(channel, self._count)
@@ -123,7 +123,7 @@ def test_replayed_recordings_meet_the_replay_window_and_freshness(bus_url: str, 
     heard = Receiver(bus_url, key_file, channels.ACTUATOR_COMMAND, replay_limits=ReplayLimits(max_age_ns=600 * 10**9))
     writer = RecordingWriter(tmp_path / "run.mcap", {"test": "replay"})
     heard.bus.subscribe_raw(writer.write)
-    genuine = Bus.open(bus_url, source_id=GENUINE_ID, clock=WallClock(), keyring=keys)
+    genuine = Bus.open(bus_url, source_id=GENUINE_ID, clock=MasterClock(), keyring=keys)
     for _ in range(50):
         genuine.publish(channels.ACTUATOR_COMMAND, ActuatorCommand(0.3, 0.0, 0.01))
         heard.bus.poll(0.005)

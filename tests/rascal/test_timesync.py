@@ -149,6 +149,23 @@ def test_master_step_resets_the_window_and_reconverges() -> None:
         assert sim.status().resets == 1
 
 
+def test_a_master_clock_jerked_to_and_fro_is_followed_with_an_honest_bound() -> None:
+    """Something steps the master's clock 3 ms ahead, then 3 ms behind, in turn: no one step to
+    confirm. The estimator must not freeze on its old model, rejecting everything in holdover: it
+    starts again from the samples, with an error bound that spans their disagreement."""
+    sim = Sim(seed=6, link=LOOPBACK_LINK)
+    sim.run(5 * S)
+    window = TimeSyncConfig().step_window_samples
+    for k in range(50):
+        sim.master_step_ns = 3 * MS if k % 2 else -3 * MS
+        sim.run(PERIOD_NS)
+        status = sim.status()
+        if k >= window:
+            assert status.state is SyncState.SYNCED, (k, status)
+            assert abs(sim.error_ns(sim.true_ns)) <= status.error_bound_ns, (k, status)
+    assert status.resets == 1 and status.rejected == window - 1, status
+
+
 def test_error_bound_covers_the_actual_error() -> None:
     for seed in range(5):
         sim = Sim(seed, link=JITTERY_LINK)

@@ -40,7 +40,7 @@ from protocol.messages import (
     Path as PlannedPath,
 )
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.recording import RecordingWriter
 from rascal.view.server import FrameHub, ViewServer
 from rascal.view.state import MAX_NAMES, ViewState
@@ -304,7 +304,7 @@ def test_the_viewer_process_shows_the_live_bus(bus_url: str, key_file: Path, tmp
     log = tmp_path / "viewer.log"
     child = start(["-m", "rascal.view", "--set", f"port={port}", "--set", "course="], log)
     url = f"http://127.0.0.1:{port}/"
-    bus = Bus.open(bus_url, source_id=77, clock=WallClock(), keyring=load_keyring(key_file))
+    bus = Bus.open(bus_url, source_id=77, clock=MasterClock(), keyring=load_keyring(key_file))
     try:
         fetch_state(url, lambda s: s["health"] is not None, 60.0, child, log)  # the viewer is up
         publish_drive(bus, 20, 0.02)
@@ -334,8 +334,8 @@ def recording(path: Path, key_file: Path, messages: list[tuple[str, Any]], end_i
     """A recording of ``messages`` (channel, message) sent 10 ms apart over an in-process bus."""
     hub = f"mem://view-{uuid.uuid4().hex}"
     keyring = load_keyring(key_file)
-    sender = Bus.open(hub, source_id=50, clock=WallClock(), keyring=keyring)
-    recorder = Bus.open(hub, source_id=51, clock=WallClock(), keyring=keyring)
+    sender = Bus.open(hub, source_id=50, clock=MasterClock(), keyring=keyring)
+    recorder = Bus.open(hub, source_id=51, clock=MasterClock(), keyring=keyring)
     writer = RecordingWriter(path, {"test": "rascal view"})
     recorder.subscribe_raw(writer.write)
     for channel, message in messages:

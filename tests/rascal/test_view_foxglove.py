@@ -17,7 +17,7 @@ from brain.course_config import DEFAULT_COURSE
 from protocol import channels
 from protocol.auth import load_keyring
 from rascal.bus import Bus
-from rascal.clock import WallClock
+from rascal.clock import MasterClock
 from rascal.record_schema import JSON_ENCODING, JSON_SCHEMA_ENCODING
 from tests.rascal.test_view import free_port, publish_drive, recording, snapshot, start, stop, vehicle
 
@@ -34,7 +34,7 @@ def test_a_foxglove_client_receives_map_scene_path_and_vehicle(bus_url: str, key
     log = tmp_path / "viewer.log"
     command = ["-m", "rascal.cli", "view", "--port", str(port), "--foxglove", "--foxglove-port", str(fox_port)]
     child = start([*command, "--course", str(DEFAULT_COURSE)], log)
-    bus = Bus.open(bus_url, source_id=78, clock=WallClock(), keyring=load_keyring(key_file))
+    bus = Bus.open(bus_url, source_id=78, clock=MasterClock(), keyring=load_keyring(key_file))
     client = None
     try:
         deadline = time.monotonic() + 60

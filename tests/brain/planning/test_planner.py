@@ -85,30 +85,32 @@ def test_an_obstacle_on_the_path_makes_a_swerve_with_clearance() -> None:
     assert np.all(points[:, 2] <= cap + 1e-6)
     # ... and the swerve takes the room the corridor has rather than shaving the disc and slowing.
     assert np.abs(beside[:, 1]).min() > 1.0 + CONFIG.clearance_m + 0.5
-    assert points[np.abs(points[:, 0] - 140.0) < 2.0, 2].min() >= 8.0
+    assert points[np.abs(points[:, 0] - 140.0) < 2.0, 2].min() >= 7.5
 
 
 def chicane(grid: Map) -> Map:
-    """Two walls 7 m apart, their gaps on opposite sides: no single swerve gets through."""
+    """Two walls 14 m apart, their gaps on opposite sides: no single swerve gets through. Between
+    them there is room for the vehicle's turns (2.3 m radius at the tightest) within the
+    clearances; 7 m apart there would not, and the search would find a way only a polyline takes."""
     grid.box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, 3.5, 142.0, 7.5)
-    return grid.box(147.0, -15.0, 148.0, 15.0).clear_box(146.0, -7.5, 149.0, -3.5)
+    return grid.box(154.0, -15.0, 155.0, 15.0).clear_box(153.0, -7.5, 156.0, -3.5)
 
 
 def test_a_wash_across_the_road_is_passed_through_the_strip_beside_it_at_speed() -> None:
-    """A ditch across the corridor, mapped 0.2 m wider than the default scenario's wash at each
-    end, leaves a strip 1.9 m wide at each side: only offsets within about 0.1 m of 8.3 m pass the
-    gate, between the regular 0.5 m offset steps. A gap-centred offset swerves through it without
-    dropping to the search's slow mode."""
+    """A ditch across the corridor, mapped 0.4 m wider than the default scenario's wash at each
+    end (the drive benchmark saw up to 0.58 m), leaves a strip 1.7 m wide at each side: only
+    offsets within about 0.15 m of 8.3 m pass the gate, between the regular 0.5 m offset steps.
+    A gap-centred offset swerves through it without dropping to the search's slow mode."""
     p = planner()
     grid = field()
     plan(p, grid, Pose(100.0, 0.0, 0.0, 10.0))
-    grid.box(150.0, -7.2, 152.5, 7.2)
+    grid.box(150.0, -7.4, 152.5, 7.4)
     result = plan(p, grid, Pose(101.0, 0.0, 0.0, 10.0))
     points = path_points(result.path)
     assert result.mode is PlanMode.REPLAN and not result.slow_mode
     assert_safe(points, grid)
     beside = points[np.abs(points[:, 0] - 151.0) < 2.0]
-    assert np.all(np.abs(beside[:, 1]) > 8.0) and np.all(np.abs(beside[:, 1]) < 8.45)
+    assert np.all(np.abs(beside[:, 1]) > 8.1) and np.all(np.abs(beside[:, 1]) < 8.45)
     assert beside[:, 2].min() > 3.0
     without = plan(planner(max_gap_offsets=0), grid, Pose(101.0, 0.0, 0.0, 10.0))
     assert without.mode is not PlanMode.REPLAN  # the regular offsets alone do not get through
@@ -136,7 +138,7 @@ def test_a_kept_path_slowed_by_a_rock_beside_it_gives_way_to_a_faster_one() -> N
 def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
     p = planner()
     grid = chicane(field())
-    result = plan(p, grid, Pose(128.0, 0.0, 0.0, 6.0))
+    result = plan(p, grid, Pose(128.0, 0.0, 0.0, 8.0))  # too fast to stop short of the second wall
     points = path_points(result.path)
     assert result.mode is PlanMode.SEARCH and result.slow_mode and result.reached_goal
     assert points[:, 2].max() <= CONFIG.slow_speed_mps + 1e-9
@@ -144,20 +146,25 @@ def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
     assert_safe(points, grid)
     dense = densified(points[:, :2])
     through_first = dense[np.abs(dense[:, 0] - 140.5) < 0.5]
-    through_second = dense[np.abs(dense[:, 0] - 147.5) < 0.5]
+    through_second = dense[np.abs(dense[:, 0] - 154.5) < 0.5]
     assert np.all(through_first[:, 1] > 3.5) and np.all(through_second[:, 1] < -3.5)
+    # It is the track the vehicle drives, turning no tighter than it can.
+    chord = np.diff(points[:-1, :2], axis=0)
+    length = np.hypot(chord[:, 0], chord[:, 1])
+    turn = np.abs(np.diff(np.unwrap(np.arctan2(chord[:, 1], chord[:, 0])))) / ((length[1:] + length[:-1]) / 2)
+    assert turn.max() <= 1.05 / CONFIG.turning_radius_m
     assert points[-1, 0] == pytest.approx(128.0 + CONFIG.horizon_m, abs=0.5)  # on to the horizon
     again = plan(p, grid, Pose(128.5, 0.0, 0.0, 1.0))
     assert again.mode is PlanMode.SEARCH and again.path.path_id == result.path.path_id  # kept while clear
 
 
 def test_a_gap_narrower_than_the_lattice_is_found_cell_by_cell() -> None:
-    """Lethal cell centres 2.4 m apart across a wall leave one row of free cells for the search
-    (clearance plus slack is 1.09 m each side), at north 0.3: off the stride-3 lattice through
+    """Lethal cell centres 2.0 m apart across a wall leave one row of free cells for the search
+    (clearance plus slack is 0.94 m each side), at north 0.3: off the stride-3 lattice through
     the vehicle's row (0.1, 0.7, ...). The search retries on every cell and gets through.
-    Candidates are held to the centre line here, which passes the gap 0.9 m from a wall cell."""
+    Candidates are held to the centre line here, which passes the gap 0.7 m from a wall cell."""
     p = planner(max_offsets=1, max_gap_offsets=0)
-    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -0.8, 142.0, 1.4)
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -0.6, 142.0, 1.2)
     assert CONFIG.search_stride == 3
     result = plan(p, grid, Pose(130.0, 0.0, 0.0, 2.0))
     points = path_points(result.path)
@@ -178,11 +185,49 @@ def test_a_far_chicane_is_approached_at_speed_and_stopped_short_of() -> None:
     assert result.mode is PlanMode.REPLAN and result.partial and not result.slow_mode
     assert points[:5, 2].min() >= 6.0 and points[-1, 2] == 0.0
     nose = CONFIG.vehicle_length_m - CONFIG.rear_overhang_m
-    assert points[-1, 0] + nose <= 147.1 - CONFIG.clearance_m  # through the first gap, short of the second wall
+    assert points[-1, 0] + nose <= 154.1 - CONFIG.clearance_m  # through the first gap, short of the second wall
     assert_safe(points, grid)
-    # At the planned stop, between the walls, the rest takes the search, at slow speed.
-    closer = plan(p, grid, Pose(points[-1, 0], points[-1, 1], 0.0, 0.3))
-    assert closer.mode is PlanMode.SEARCH and closer.slow_mode
+    # Driven on, every path safe, the vehicle is through both gaps without stopping.
+    pose = Pose(100.0, 0.0, 0.0, 6.0)
+    for _ in range(40):
+        result = plan(p, grid, pose)
+        points = path_points(result.path)
+        assert_safe(points, grid)
+        assert result.mode is not PlanMode.STOP
+        if pose.east_m > 156.0:
+            break
+        pose = _step_along(points, 2.0)
+    assert pose.east_m > 156.0
+
+
+def test_a_partial_path_gives_way_to_the_search_while_there_is_room_to_turn() -> None:
+    """Walls 10 m apart: a swerve gets through the first gap, and stopping beyond it would leave
+    the vehicle 3 m from the second wall, too close to turn for the other gap. Nearing the
+    partial path's stop, the search takes over in time, and its track (the vehicle's turns, not
+    a polyline's) gets through both."""
+    p = planner()
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, 3.5, 142.0, 7.5)
+    grid.box(150.0, -15.0, 151.0, 15.0).clear_box(149.0, -7.5, 152.0, -3.5)
+    pose, modes = Pose(100.0, 0.0, 0.0, 6.0), []
+    for _ in range(80):
+        result = plan(p, grid, pose)
+        points = path_points(result.path)
+        assert_safe(points, grid)
+        modes.append(result.mode)
+        if pose.east_m > 156.0 or len(points) < 2:
+            break
+        pose = _step_along(points, 1.5)
+    assert result.mode is not PlanMode.STOP and pose.east_m > 156.0
+    searched = modes.index(PlanMode.SEARCH)
+    assert searched > 0 and modes[searched - 1] is PlanMode.REPLAN  # from the partial path
+
+
+def _step_along(points: np.ndarray, distance_m: float) -> Pose:
+    """The pose ``distance_m`` along a published path, heading along it, at its speed there."""
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points[:, :2], axis=0).T))])
+    i = min(int(np.searchsorted(along, distance_m)), len(points) - 1)
+    heading = math.atan2(points[i, 1] - points[i - 1, 1], points[i, 0] - points[i - 1, 0])
+    return Pose(float(points[i, 0]), float(points[i, 1]), heading, max(float(points[i, 2]), 0.5))
 
 
 def test_a_blocked_corridor_stops_short_with_the_nose_clear() -> None:
@@ -201,7 +246,7 @@ def test_a_blocked_corridor_stops_short_with_the_nose_clear() -> None:
     for east in (112.0, 125.0):
         again = plan(p, grid, Pose(east, 0.0, 0.0, 1.0))
         assert again.mode is PlanMode.SEARCH and again.path.path_id == result.path.path_id
-        assert path_points(again.path)[0, 0] == pytest.approx(east)
+        assert path_points(again.path)[0, 0] == pytest.approx(east, abs=0.01)
     near_end = points[-1, 0] - CONFIG.min_partial_m + 1.0
     assert plan(p, grid, Pose(near_end, 0.0, 0.0, 1.0)).path.path_id != result.path.path_id
 

@@ -1,17 +1,20 @@
 """Vision workers under the watchdog: results for the frame handed over, and a crashed (SIGKILL,
-injected exit) or hung (injected sleep) worker replaced by a new process that works again."""
+injected exit) or hung (injected sleep) worker replaced by a new process that works again; a
+worker starved of CPU (runnable, not run) is left to finish."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
+import time
 from collections.abc import Iterator
 
 import pytest
 
 from modules.esvs.frames import RingWriter
 from modules.esvs.settings import EsvsConfig, vision_params
-from modules.esvs.watchdog import RECOVERY_REPORTS, Watchdog, worker_context
+from modules.esvs.watchdog import RECOVERY_REPORTS, Watchdog, threads_of, worker_context
 from modules.esvs.worker import CRASH_EXIT_CODE, Inject, Process, SetParams, WorkerSpec
 from tests.modules.esvs.framework.rings import HEIGHT, WIDTH, ring_name_fixture
 from tests.modules.esvs.framework.workers import SCENE, Events, pump, write_frames
@@ -108,6 +111,59 @@ def test_an_injected_hang_is_noticed_and_the_worker_replaced(
     for _ in range(RECOVERY_REPORTS):
         assert process_one(watchdog, writer)
     assert worker.timeout_ns == worker.hang_timeout_ns
+
+
+STARVE_S = 1.5  # five hang timeouts
+
+
+def _spin(seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+def _schedule(pid: int, cpus: set[int], policy: int) -> None:
+    """Every thread of ``pid`` onto ``cpus`` under ``policy``."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        os.sched_setaffinity(int(tid), cpus)
+        os.sched_setscheduler(int(tid), policy, os.sched_param(0))
+
+
+def test_a_worker_starved_of_cpu_is_not_taken_for_hung(vision: tuple[Watchdog, Events], writer: RingWriter) -> None:
+    watchdog, events = vision
+    worker = watchdog.workers["vision"]
+    ready(watchdog)
+    if not hasattr(os, "SCHED_IDLE") or not threads_of(worker.pid).cpu_ns:
+        pytest.skip("needs Linux's SCHED_IDLE and per-thread schedstat")
+    cpus = os.sched_getaffinity(0)
+    cpu = min(cpus)
+    # SCHED_IDLE beside a busy process on its one CPU: runnable, and run only when nothing else wants it.
+    try:
+        _schedule(worker.pid, {cpu}, os.SCHED_IDLE)
+    except PermissionError as exc:
+        pytest.skip(f"this machine refuses SCHED_IDLE: {exc}")
+    hog = multiprocessing.get_context("fork").Process(target=_spin, args=(STARVE_S,), daemon=True)
+    hog.start()
+    try:
+        assert hog.pid is not None
+        os.sched_setaffinity(hog.pid, {cpu})
+        (seq,) = write_frames(writer)
+        assert worker.send(Process(writer.generation, seq))
+        starved = pump(watchdog, lambda _got: not hog.is_alive(), timeout_s=STARVE_S + 5.0)
+    finally:
+        hog.join(STARVE_S + 5.0)
+    assert not starved, "the frame was done while the hog ran: the worker was not starved, the test proves nothing"
+    assert worker.restarts == 0, events.items
+    _schedule(worker.pid, cpus, os.SCHED_OTHER)
+    reports = pump(watchdog, lambda got: any(r.seq == seq for r in got))
+    assert [r.seq for r in reports] == [seq]
+    assert worker.restarts == 0, events.items
+
+
+def test_a_process_is_seen_running_and_using_cpu() -> None:
+    me = threads_of(os.getpid())
+    assert me.runnable and me.cpu_ns > 0  # this thread is running as it reads
+    assert threads_of(2**22 + 1) == (0, False)  # beyond pid_max: nothing known, nothing excused
 
 
 def test_an_injected_crash_reports_its_exit_code(vision: tuple[Watchdog, Events], writer: RingWriter) -> None:

@@ -1,0 +1,52 @@
+"""The time client over a real loopback bus: it asks at its callers' rate until the estimate has
+settled, then twice a second, and stays synced."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from protocol.auth import load_keyring
+from rascal.bus import Bus
+from rascal.clock import MasterClock, SharedClock
+from rascal.timeclient import SETTLED_REQUEST_PERIOD_NS, TimeClient, TimeMaster
+from rascal.timesync import SyncState
+
+CALL_PERIOD_S = 0.1  # as Runtime calls request()
+SETTLE_LIMIT_S = 10.0
+WATCH_S = 2.5  # after settling
+
+
+def test_requests_slow_down_once_the_estimate_settles_and_it_stays_synced(bus_url: str, key_file: Path) -> None:
+    keyring = load_keyring(key_file)
+    master_bus = Bus.open(bus_url, source_id=1, clock=MasterClock(), keyring=keyring)
+    clock = SharedClock()
+    client_bus = Bus.open(bus_url, source_id=7, clock=clock, keyring=keyring)
+    master, client = TimeMaster(master_bus), TimeClient(client_bus, clock)
+    answered_at: list[float] = []
+    try:
+        start = time.monotonic()
+        settled_at = None
+        # Until settled (a loaded machine may take longer than the 0.8 s of eight calls), then on.
+        while time.monotonic() - start < (SETTLE_LIMIT_S if settled_at is None else settled_at + WATCH_S):
+            before = master.answered
+            client.request()
+            end = time.monotonic() + CALL_PERIOD_S
+            while time.monotonic() < end:
+                master_bus.poll(0.005)
+                client_bus.poll(0.005)
+            answered_at += [time.monotonic() - start] * (master.answered - before)
+            if settled_at is None and client.settled(clock.local_ns()):
+                settled_at = time.monotonic() - start
+        status = clock.estimator.status(clock.local_ns())
+    finally:
+        master_bus.close()
+        client_bus.close()
+    assert settled_at is not None, f"not settled within {SETTLE_LIMIT_S} s: {status}"
+    before_settling = [t for t in answered_at if t <= settled_at]
+    after_settling = [t for t in answered_at if t > settled_at + 0.2]
+    assert len(before_settling) >= 8  # every call, until a full step window agreed
+    calls_after = (WATCH_S - 0.2) / CALL_PERIOD_S
+    slow_share = CALL_PERIOD_S / (SETTLED_REQUEST_PERIOD_NS / 1e9)
+    assert len(after_settling) <= calls_after * slow_share + 1, answered_at
+    assert status.state == SyncState.SYNCED and status.error_bound_ns < 1_000_000, status
