@@ -99,6 +99,7 @@ class ModuleStatus(NamedTuple):
     clock_offset_ns: int
     clock_error_bound_ns: int
     detail: str = ""
+    cpu_pct: float = -1.0  # of one core over the last heartbeat period, children included; < 0 unknown
 
 
 @message(type_id=3)

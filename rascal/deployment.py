@@ -19,6 +19,7 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     source_id = 21                            # default: the module's own
     nice = 0                                  # scheduling: higher runs later (0..19)
     heartbeat_timeout_s = 3.0                 # the supervisor restarts a module this quiet
+    cpu_budget_pct = 4.0                      # % of one core, children included (default: per module)
     set = { sensor = "lidar_h_left" }         # config overrides, as --set KEY=VALUE
 
     [[faults]]                                # link faults on receivers (protocol/faults.py)
@@ -53,6 +54,27 @@ FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
 # Each host's own processes (supervisor, recorder) get source ids offset by this per host, in
 # declaration order: two senders sharing a source id would break each other's replay windows.
 HOST_SOURCE_ID_STRIDE = 100
+# What each module may use, in % of one core with its children, before the supervisor warns
+# (over it for CPU_BUDGET_BEATS heartbeats in a row). The default deployment's sum is 93 %: the
+# whole simulated stack within one core, the vehicle's own side (esvs, ins, brain, control,
+# health) within 53 %.
+DEFAULT_CPU_BUDGET_PCT: dict[str, float] = {
+    "esvs": 20.0,  # with its vision workers and their fork server
+    "brain": 20.0,
+    "stereo_camera": 12.0,
+    "ins": 6.0,
+    "sim": 5.0,
+    "viewer": 5.0,
+    "control": 4.0,
+    "nav_sensors": 4.0,
+    "health": 3.0,
+    "referee": 3.0,
+    "recorder": 3.0,
+    "lidar": 2.0,
+    "supervisor": 2.0,
+    "time_service": 1.0,
+}
+OTHER_CPU_BUDGET_PCT = 10.0
 
 
 class DeploymentError(ValueError):
@@ -70,6 +92,13 @@ class ModuleSpec:
     settings: dict[str, str] = field(default_factory=dict)
     entry: str = ""  # the Python module to run, when it is not modules.<module> (the recorder)
     faults: tuple[FaultRule, ...] = ()  # link faults on this module's receive side
+    cpu_budget: float | None = None  # % of one core; None: the module's default
+
+    @property
+    def cpu_budget_pct(self) -> float:
+        if self.cpu_budget is not None:
+            return self.cpu_budget
+        return DEFAULT_CPU_BUDGET_PCT.get(self.module, OTHER_CPU_BUDGET_PCT)
 
     @property
     def python_module(self) -> str:
@@ -195,7 +224,7 @@ class _Parser:
         where = f"modules.{label}"
         if not isinstance(table, dict):
             raise self.fail(where, "expected a table")
-        self.keys(table, where, {"module", "host", "source_id", "nice", "heartbeat_timeout_s", "set"})
+        self.keys(table, where, {"module", "host", "source_id", "nice", "heartbeat_timeout_s", "cpu_budget_pct", "set"})
         name = self.string(table, where, "module", default=label)
         try:
             cls = module_class(name)
@@ -229,7 +258,12 @@ class _Parser:
         source_id = self.integer(table, where, "source_id", default=cls.default_source_id)
         if not 1 <= source_id <= 0xFFFF:
             raise self.fail(f"{where}.source_id", f"expected 1..65535, got {source_id}")
-        return ModuleSpec(label, name, host, source_id, nice, timeout, settings)
+        budget = None
+        if "cpu_budget_pct" in table:
+            budget = self.number(table, where, "cpu_budget_pct", default=0.0)
+            if not 0 < budget <= 1000:
+                raise self.fail(f"{where}.cpu_budget_pct", f"expected a share of one core in (0, 1000] %, got {budget}")
+        return ModuleSpec(label, name, host, source_id, nice, timeout, settings, cpu_budget=budget)
 
     def faults(self, value: Any, specs: list[ModuleSpec], hosts: dict[str, str]) -> list[ModuleSpec]:
         """Give each module the ``[[faults]]`` rules whose receivers include it."""

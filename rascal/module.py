@@ -5,7 +5,8 @@ A module subclasses :class:`Module`, declares its typed ``Config`` and reacts in
 (subscribe, declare inputs, add periodic tasks), in handlers, and in periodic tasks. The
 :class:`Runtime` owns the bus, the shared clock and the loop: it waits on the bus until the next
 task is due, runs due tasks by priority, measures activation jitter and overruns, answers or
-asks the time service, and publishes a ModuleStatus heartbeat every second. Under systemd it
+asks the time service, and publishes a ModuleStatus heartbeat every second (with the CPU the
+process and its children used since the last). Under systemd it
 also tells the service manager it is ready and, with each heartbeat, that it is alive
 (rascal/sdnotify.py).
 """
@@ -23,6 +24,7 @@ from protocol import channels
 from protocol.messages import HealthEvent, ModuleState, ModuleStatus, Severity
 from rascal.bus import Bus
 from rascal.clock import Clock, MasterClock, SharedClock, SkewedLocal
+from rascal.cpu import UNKNOWN_PCT, CpuMeter
 from rascal.rtdb import Latest
 from rascal.sdnotify import Notifier
 from rascal.timeclient import TimeClient, TimeMaster
@@ -64,6 +66,7 @@ class Module:
     name: ClassVar[str] = "module"
     default_source_id: ClassVar[int] = 0
     Config: ClassVar[type] = object
+    cpu_counts_children: ClassVar[bool] = True  # the heartbeat's CPU includes child processes
 
     def __init__(self, config: Any, runtime: Runtime) -> None:
         self.config = config
@@ -117,6 +120,7 @@ class Runtime:
         self.time_client = TimeClient(bus, clock) if isinstance(clock, SharedClock) else None
         self._epoch_ns: int | None = None
         self.notifier = Notifier()
+        self._cpu: CpuMeter | None = None  # made when the loop starts: start-up imports are not the loop's load
 
     def add_task(
         self, name: str, fn: Callable[[], None], period_s: float, offset_s: float = 0.0, priority: int = 0
@@ -167,6 +171,7 @@ class Runtime:
         self.add_task("heartbeat", self._heartbeat, HEARTBEAT_PERIOD_S, priority=9)
         module.on_start()
         self._epoch_ns = time.monotonic_ns()
+        self._cpu = CpuMeter(children=module.cpu_counts_children)
         for task in self._tasks:
             task.due_ns += self._epoch_ns
         heapq.heapify(self._tasks)
@@ -234,12 +239,17 @@ class Runtime:
             offset,
             bound,
             module.status_detail(),
+            self._cpu_pct(),
         )
         self.bus.publish(channels.MODULE_STATUS, status)
         if state is not ModuleState.STOPPING:  # the watchdog hears the loop, as the supervisor does
             self.notifier.notify(WATCHDOG="1", STATUS=status.detail or ModuleState(state).name)
         for task in self._tasks:
             task.timing = TaskTiming()
+
+    def _cpu_pct(self) -> float:
+        pct = self._cpu.sample() if self._cpu is not None else UNKNOWN_PCT
+        return pct if pct == UNKNOWN_PCT else round(pct, 1)
 
     def _clock_status(self) -> tuple[int, int, int]:
         if isinstance(self.clock, SharedClock):

@@ -9,8 +9,8 @@ report). They go to ``RUN_DIR/report/``:
 * ``speed.png``: speed along the course against the RDDF limit and the course's speed profile;
 * ``cross_track.png``: the offset from the course centre line within the corridor, and the
   distance from the newest planned path (what control tracks);
-* ``timing.png``: per module, activation jitter over the run's heartbeats, loop rate, overruns,
-  restarts, rejected datagrams and output rates.
+* ``timing.png``: per module, activation jitter over the run's heartbeats, mean CPU, loop rate,
+  overruns, restarts, rejected datagrams and output rates.
 """
 
 from __future__ import annotations
@@ -226,7 +226,8 @@ def _distance_to_polyline(points: FloatArray, east: float, north: float) -> floa
 
 def render_timing(data: RunData) -> np.ndarray:
     """Per module: jitter (median to 95th percentile bar, maximum marker) on a log axis, and
-    beside it the loop rate, heartbeats, overruns, restarts, rejects and output rates."""
+    beside it the mean CPU (% of one core, children included), loop rate, heartbeats, overruns,
+    restarts, rejects and output rates."""
     modules = list(data.modules.values())
     row_px = 30
     width = CHART_SIZE[0]
@@ -275,7 +276,15 @@ def render_timing(data: RunData) -> np.ndarray:
 
 
 def _timing_table(image: np.ndarray, modules: list[Any], chart: Chart, left: int) -> None:
-    columns = [("loop Hz", 70), ("beats", 60), ("overruns", 80), ("restarts", 75), ("rejects", 70), ("outputs (Hz)", 0)]
+    columns = [
+        ("cpu %", 60),
+        ("loop Hz", 70),
+        ("beats", 60),
+        ("overruns", 80),
+        ("restarts", 75),
+        ("rejects", 70),
+        ("outputs (Hz)", 0),
+    ]
     _plot_left, plot_top, _w, _h = chart.plot
     x = left
     for name, width in columns:
@@ -288,7 +297,9 @@ def _timing_table(image: np.ndarray, modules: list[Any], chart: Chart, left: int
         outputs = sorted(timing.outputs_hz.items(), key=lambda item: -item[1])
         shown = ", ".join(f"{channel} {hz:.3g}" for channel, hz in outputs[:MAX_OUTPUTS])
         shown += f" +{len(outputs) - MAX_OUTPUTS}" if len(outputs) > MAX_OUTPUTS else ""
+        cpu = timing.mean_cpu_pct
         cells = [
+            f"{cpu:.1f}" if cpu is not None else "-",
             f"{loop_hz:.0f}" if loop_hz else "-",
             str(timing.heartbeats),
             str(timing.overruns),

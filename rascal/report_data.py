@@ -66,7 +66,12 @@ class ModuleTiming:
     overruns: int = 0
     restarts: int = 0
     rx_rejected: int = 0
+    cpu_pct: list[float] = field(default_factory=list)  # per heartbeat, measured ones only
     outputs_hz: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def mean_cpu_pct(self) -> float | None:
+        return sum(self.cpu_pct) / len(self.cpu_pct) if self.cpu_pct else None
 
 
 @dataclass
@@ -196,6 +201,8 @@ class _Reader:
             for _source, status in beats:
                 timing.jitter_ms.append(status.jitter_ns / 1e6)
                 timing.overruns += status.overruns
+                if status.cpu_pct >= 0:
+                    timing.cpu_pct.append(status.cpu_pct)
             last = beats[-1][1]
             timing.loop_period_ns, timing.restarts, timing.rx_rejected = (
                 last.loop_period_ns,

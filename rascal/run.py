@@ -32,6 +32,7 @@ from protocol.codec import Envelope
 from protocol.messages import HealthEvent, Severity, StopCommand, StopMode, VehicleState
 from rascal.bus import Bus
 from rascal.clock import SharedClock
+from rascal.cpu import CpuMeter
 from rascal.deployment import (
     DEFAULT_DEPLOYMENT,
     LOCALHOST,
@@ -40,9 +41,11 @@ from rascal.deployment import (
     ModuleSpec,
     load_deployment,
 )
+from rascal.logread import RecordingError, read_metadata
 from rascal.module import Runtime
+from rascal.recording import END_METADATA
 from rascal.report import report_run
-from rascal.supervisor import SUPERVISOR_SOURCE_ID, Supervisor, module_state
+from rascal.supervisor import SUPERVISOR_SOURCE_ID, Child, Supervisor, module_state
 from rascal.view.module import viewer_spec
 
 VIEW_PERIOD_S = 0.5
@@ -91,16 +94,15 @@ class RunSupervisor(Supervisor):
         self.station_m: float | None = None
         self.state: VehicleState | None = None
         self.events: list[HealthEvent] = []
-        self.traffic: Counter[str] = Counter()
         self.finished = False
         self.started_s = time.monotonic()
+        self.own_cpu = CpuMeter(children=False)  # over the whole run, for the summary
         self.live: Live | None = None
 
     def on_start(self) -> None:
         super().on_start()
         self.bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
         self.bus.subscribe(channels.HEALTH, lambda event, _env: self.events.append(event))
-        self.bus.subscribe_raw(lambda opened, _data, _recv_ns: self.traffic.update([opened.channel]))
         self.every(VIEW_PERIOD_S, self.refresh, priority=1)
         self.live = Live(self.view(), console=self.console, refresh_per_second=4, transient=False)
         self.live.start()
@@ -159,11 +161,14 @@ class RunSupervisor(Supervisor):
         if self.frame is not None and self.station_m is not None:
             share = 100.0 * max(0.0, self.station_m) / self.frame.length_m
             parts.append(f"course {share:5.1f} % ({self.station_m:.0f}/{self.frame.length_m:.0f} m)")
+        now = [child.status.cpu_pct for child in self.children if child.status and child.status.cpu_pct >= 0]
+        if now:
+            parts.append(f"modules' CPU {sum(now):.0f} % of one core")
         return "   ".join(parts)
 
     def view(self) -> Group:
         modules = Table(title=self.progress_line(), title_justify="left", expand=False)
-        for column in ("module", "state", "restarts", "uptime s", "jitter ms", "detail"):
+        for column in ("module", "state", "restarts", "uptime s", "cpu %", "jitter ms", "detail"):
             modules.add_column(column, justify="left" if column in ("module", "state", "detail") else "right")
         for child in self.children:
             status = child.status
@@ -172,6 +177,7 @@ class RunSupervisor(Supervisor):
                 module_state(child),
                 str(child.restarts),
                 f"{status.uptime_s:.0f}" if status else "",
+                _cpu_cell(child),
                 f"{status.jitter_ns / 1e6:.1f}" if status else "",
                 (status.detail if status else "")[:70],
             )
@@ -183,6 +189,8 @@ class RunSupervisor(Supervisor):
 
     def summary(self) -> dict[str, Any]:
         elapsed = time.monotonic() - self.started_s
+        cpu = {child.spec.label: child.cpu.mean_pct for child in self.children}
+        own_cpu_pct = self.own_cpu.sample()
         return {
             "deployment": self.deployment.name,
             "deployment_file": str(self.deployment.path.resolve()),  # for rascal report RUN_DIR
@@ -198,12 +206,47 @@ class RunSupervisor(Supervisor):
                     "overruns": child.status.overruns if child.status else None,
                     "rx_rejected": child.status.rx_rejected if child.status else None,
                     "detail": child.status.detail if child.status else None,
+                    "cpu_pct": _rounded(child.cpu.mean_pct),
+                    "cpu_peak_pct": round(child.cpu.peak_pct, 1),
+                    "cpu_budget_pct": child.cpu.budget_pct,
                 }
                 for child in self.children
             },
-            "messages_per_s": {channel: round(count / elapsed, 1) for channel, count in sorted(self.traffic.items())},
+            # % of one core, each module's mean over its heartbeats (children included), and
+            # this supervisor's own over the run.
+            "cpu_pct": {
+                "modules": _rounded(sum(pct for pct in cpu.values() if pct is not None)),
+                "supervisor": round(own_cpu_pct, 1),
+            },
+            "messages_per_s": self.traffic(elapsed),
             "health_events": Counter(f"{e.module}:{e.code}" for e in self.events),
         }
+
+    def traffic(self, elapsed_s: float) -> dict[str, float]:
+        """Messages per second on each channel, as the recorder (which hears every channel, so
+        the supervisor need not) counted them in its end-of-recording metadata."""
+        try:
+            counts = read_metadata(self.run_dir / "run.mcap").get(END_METADATA, {})
+        except RecordingError:
+            return {}
+        prefix = "received/"
+        return {
+            key.removeprefix(prefix): round(int(count) / elapsed_s, 1)
+            for key, count in sorted(counts.items())
+            if key.startswith(prefix)
+        }
+
+
+def _cpu_cell(child: Child) -> str:
+    """This heartbeat's CPU, marked when over the module's budget."""
+    status = child.status
+    if status is None or status.cpu_pct < 0:
+        return ""
+    return f"{status.cpu_pct:.1f}" + ("!" if status.cpu_pct > child.cpu.budget_pct else "")
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 1)
 
 
 def run(

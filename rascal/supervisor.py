@@ -5,7 +5,9 @@ HealthEvents). A child that exits, or whose heartbeat has been silent for its
 ``heartbeat_timeout_s`` (hung: it gets SIGKILL first), is restarted: at once the first time,
 then with a doubling back-off while it keeps failing within ``STABLE_S`` of its last start, so a
 module that crashes on start cannot spin. Each child is told its restart count (``--restarts``),
-which it reports in its own heartbeat.
+which it reports in its own heartbeat. Each heartbeat's CPU (% of one core, children included)
+is kept for the run's summary and held to the child's budget: over it for ``CPU_BUDGET_BEATS``
+heartbeats in a row (10 s) is a WARNING HealthEvent ``cpu_budget``, once until it comes back under.
 """
 
 from __future__ import annotations
@@ -33,6 +35,31 @@ MAX_BACKOFF_S = 5.0
 STOP_WAIT_S = 5.0
 SUPERVISOR_SOURCE_ID = 9
 RUN_DIR_ENV = "RASCAL_RUN_DIR"
+CPU_BUDGET_BEATS = 10
+
+
+@dataclass
+class CpuBooks:
+    """One child's CPU over the run, from its heartbeats, against its budget."""
+
+    budget_pct: float
+    total_pct: float = 0.0
+    beats: int = 0
+    peak_pct: float = 0.0
+    over_in_a_row: int = 0
+
+    @property
+    def mean_pct(self) -> float | None:
+        return self.total_pct / self.beats if self.beats else None
+
+    def add(self, cpu_pct: float) -> bool:
+        """Book one heartbeat's CPU; True exactly when it completes a run of CPU_BUDGET_BEATS
+        heartbeats over budget (it is said once per such run)."""
+        self.total_pct += cpu_pct
+        self.beats += 1
+        self.peak_pct = max(self.peak_pct, cpu_pct)
+        self.over_in_a_row = self.over_in_a_row + 1 if cpu_pct > self.budget_pct else 0
+        return self.over_in_a_row == CPU_BUDGET_BEATS
 
 
 @dataclass
@@ -48,6 +75,10 @@ class Child:
     last_heartbeat_s: float | None = None
     status: ModuleStatus | None = None
     exits: list[str] = field(default_factory=list)  # why each restart happened
+    cpu: CpuBooks = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.cpu = CpuBooks(self.spec.cpu_budget_pct)
 
     @property
     def running(self) -> bool:
@@ -65,6 +96,7 @@ class Supervisor(Module):
     name = "supervisor"
     default_source_id = SUPERVISOR_SOURCE_ID
     Config = SupervisorConfig
+    cpu_counts_children = False  # they report their own
 
     def __init__(
         self,
@@ -95,9 +127,17 @@ class Supervisor(Module):
 
     def on_status(self, status: ModuleStatus, envelope: Envelope) -> None:
         child = self._by_source.get(envelope.source_id)
-        if child is not None:
-            child.last_heartbeat_s = time.monotonic()
-            child.status = status
+        if child is None:
+            return
+        child.last_heartbeat_s = time.monotonic()
+        child.status = status
+        if status.cpu_pct >= 0 and child.cpu.add(status.cpu_pct):
+            self.report(
+                Severity.WARNING,
+                "cpu_budget",
+                f"{child.spec.label} used more than its {child.cpu.budget_pct:g} % of one core for "
+                f"{CPU_BUDGET_BEATS} s (now {status.cpu_pct:.0f} %)",
+            )
 
     def check(self) -> None:
         now = time.monotonic()

@@ -1,5 +1,6 @@
 """`rascal run` supervising real processes: a killed module is back within a second, a hung one
-is killed and restarted, and the run ends by itself with a summary."""
+is killed and restarted, a module over its CPU budget is reported, and the run ends by itself with
+a summary."""
 
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ bus = "{bus}"
 heartbeat_timeout_s = 1.5
 
 [modules.health]
+cpu_budget_pct = 0.01  # it uses more: over budget from its first heartbeat on
 """
 
 
@@ -94,5 +96,11 @@ def test_rascal_run_restarts_killed_and_hung_modules(bus_url: str, key_file: Pat
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["modules"]["beacon"]["restarts"] == 2
     assert summary["modules"]["time_service"]["restarts"] == 0
-    assert summary["messages_per_s"][channels.OBSTACLES_BEACON] > 5
+    assert summary["messages_per_s"][channels.OBSTACLES_BEACON] > 5  # as the recorder counted them
+    # CPU: every module's mean over its heartbeats, the total and the supervisor's own.
+    cpu = {label: module["cpu_pct"] for label, module in summary["modules"].items()}
+    assert set(cpu) == {"recorder", "time_service", "beacon", "health"} and all(0 < pct < 100 for pct in cpu.values())
+    assert summary["cpu_pct"]["modules"] == pytest.approx(sum(cpu.values()), abs=0.2)
+    assert 0 < summary["cpu_pct"]["supervisor"] < 100
+    assert summary["health_events"]["supervisor:cpu_budget"] == 1  # said once, though over it all along
     assert not pids_of("beacon", bus_url), "the run stopped its modules"

@@ -21,7 +21,7 @@ from tests.protocol.wire_samples import SAMPLES, type_id_of
 # on purpose, together with SPEC.md (and VERSION if the change is not an append-with-default).
 GOLDEN: dict[int, tuple[str, str]] = {
     1: ("TimeSync", "989ed9c660e9faf8"),
-    2: ("ModuleStatus", "4a409f2def006a81"),
+    2: ("ModuleStatus", "d376bc08719cce38"),
     3: ("HealthEvent", "862133c3f7431b67"),
     4: ("ConfigUpdate", "4d3e3bc247c2030a"),
     10: ("ImuSample", "5e9a35ebcb95e93b"),

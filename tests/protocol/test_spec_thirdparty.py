@@ -412,6 +412,7 @@ NOTES = {
     ("ModuleStatus", "overruns"): "count",
     ("ModuleStatus", "restarts"): "count",
     ("ModuleStatus", "rx_rejected"): "count",
+    ("ModuleStatus", "cpu_pct"): "% of one core over the last heartbeat period, children included; −1 unknown",
     ("HealthEvent", "module"): "module name",
     ("HealthEvent", "code"): "short machine-readable code",
     ("HealthEvent", "text"): "human-readable text",

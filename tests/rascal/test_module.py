@@ -73,6 +73,7 @@ def test_heartbeat_reports_state_and_stale_inputs() -> None:
     assert first.state == ModuleState.DEGRADED  # its input has never arrived
     assert first.stale_inputs == (channels.OBSTACLES_BEACON,)
     assert last.state == ModuleState.STOPPING
+    assert first.cpu_pct == -1.0 and last.cpu_pct >= 0.0  # too soon to judge, then measured
 
 
 def test_set_period_retimes_running_tasks_staggered() -> None:
