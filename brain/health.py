@@ -94,6 +94,12 @@ class SensorHealth:
         self.heard(NAVIGATION, t_meas_ns)
         self.navigation = state
 
+    def oldest_live_ns(self, sources: tuple[str, ...], now_ns: int) -> int | None:
+        """The oldest of the newest measurement times of those ``sources`` that are alive: how
+        stale the freshest picture they give together is."""
+        times = [self.last_ns[source] for source in sources if self.alive(source, now_ns)]
+        return min(times) if times else None
+
     def alive(self, source: str, now_ns: int) -> bool:
         last = self.last_ns.get(source)
         if last is None:

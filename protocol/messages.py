@@ -264,6 +264,10 @@ class Path(NamedTuple):
     path_id: int
     points: tuple[PathPoint, ...]
     slow_mode: bool
+    # Measurement time of the stalest obstacle picture this plan used: the oldest of the newest
+    # descriptors of each live obstacle sensor. The first command after the path, minus this, is
+    # the measurement-to-actuator latency. 0: unknown.
+    t_input_ns: int = 0
 
 
 @message(type_id=31)

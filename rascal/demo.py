@@ -12,12 +12,18 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 from modules.referee.measures import drove_safely
 from rascal.deployment import DEFAULT_DEPLOYMENT, LOCALHOST, load_deployment
 from rascal.run import run
 
 DEMO_LIMIT_S = 540.0  # the course takes about six minutes on a 2-core machine
+
+
+def _latency(summary: dict[str, Any]) -> str:
+    latency = summary.get("latency_ms", {}).get("obstacle_to_actuator")
+    return f", obstacle-to-actuator latency p99 {latency['p99']:.0f} ms" if latency else ""
 
 
 def run_demo(runs_dir: Path = Path("runs")) -> int:
@@ -33,6 +39,6 @@ def run_demo(runs_dir: Path = Path("runs")) -> int:
         f"corridor exits {drive.get('corridor_exits')}, ditch/berm entries {drive.get('hazard_entries')}, "
         f"mean speed {drive.get('mean_speed_mps', 0):.2f} of "
         f"{drive.get('allowed_mean_speed_mps', 0):.2f} m/s allowed ({100 * drive.get('speed_ratio', 0):.1f} %), "
-        f"cross-track RMS {drive.get('cross_track_rms_m', 0):.2f} m"
+        f"cross-track RMS {drive.get('cross_track_rms_m', 0):.2f} m{_latency(summary)}"
     )
     return 0 if ok else 1

@@ -27,6 +27,7 @@ from rich.console import Console
 
 from brain.rddf_cli import CORRIDOR_EDGE, CORRIDOR_FILL, FONT, INK, PAPER, Color, draw_text
 from rascal.deployment import Deployment, DeploymentError, load_deployment
+from rascal.latency import summarise
 from rascal.report_chart import Chart, LegendEntry
 from rascal.report_data import FloatArray, ReportError, RunData, Track, read_run
 from rascal.report_track import OBSTACLE, drive_line, render_final_map, render_track
@@ -46,6 +47,7 @@ class Report:
     directory: Path
     images: dict[str, Path]  # name -> file
     drive: str  # the drive in one line (rascal/report_track.py: drive_line)
+    latency_ms: dict[str, float | int]  # measurement to actuator: p50, p99, max, samples (rascal/latency.py)
 
 
 def build_report(run_dir: Path, deployment: Deployment | None = None) -> Report:
@@ -69,7 +71,7 @@ def build_report(run_dir: Path, deployment: Deployment | None = None) -> Report:
         if not cv2.imwrite(str(path), image):
             raise OSError(f"{path}: OpenCV could not write it")
         written[name] = path
-    return Report(directory, written, drive_line(data))
+    return Report(directory, written, drive_line(data), summarise(data.latency_ms))
 
 
 def report_run(run_dir: Path, deployment: Deployment, console: Console) -> Report | None:

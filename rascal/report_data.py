@@ -1,6 +1,7 @@
 """What the run report shows, read back from a run directory: the drive (true and estimated
 tracks, planned paths, map snapshots) from ``run.mcap`` through rascal/logread.py, the course and
-obstacles from the run's deployment, and each module's timing from its heartbeats.
+obstacles from the run's deployment, each module's timing from its heartbeats, and the
+measurement-to-actuator latency (rascal/latency.py).
 
 Tracks are thinned to ``TRACK_PERIOD_S`` (the report's resolution; the simulator's truth comes at
 100 Hz), and only the messages the report draws are decoded.
@@ -26,6 +27,7 @@ from protocol import channels
 from protocol.errors import ProtocolError
 from protocol.messages import MapSnapshot, ModuleStatus
 from rascal.deployment import Deployment, load_deployment
+from rascal.latency import measurement_to_actuator_ms
 from rascal.logread import RecordingError, decode, iter_datagrams
 
 TRACK_PERIOD_S = 0.1
@@ -88,6 +90,7 @@ class RunData:
     paths: list[tuple[float, FloatArray]]  # (time, planned points N x 2), in order
     snapshots: list[tuple[float, MapSnapshot]]
     modules: dict[str, ModuleTiming]
+    latency_ms: FloatArray  # measurement to actuator, one per path that carried its input time
 
 
 def read_run(run_dir: Path, deployment: Deployment | None = None) -> RunData:
@@ -136,6 +139,7 @@ def read_run(run_dir: Path, deployment: Deployment | None = None) -> RunData:
         reader.paths,
         reader.snapshots,
         reader.modules(),
+        measurement_to_actuator_ms(reader.path_inputs, reader.commands_ns),
     )
 
 
@@ -152,6 +156,8 @@ class _Reader:
         self.status: dict[str, list[tuple[int, ModuleStatus]]] = defaultdict(list)
         self.sent: Counter[tuple[int, str]] = Counter()
         self.undecodable = 0
+        self.path_inputs: list[tuple[int, int]] = []  # (PATH t_pub_ns, t_input_ns)
+        self.commands_ns: list[int] = []  # ACTUATOR_COMMAND t_pub_ns
 
     def add(self, datagram: Any) -> None:
         t_ns = datagram.log_time_ns
@@ -160,6 +166,9 @@ class _Reader:
         self.last_ns = max(self.last_ns, t_ns)
         channel = datagram.channel
         self.sent[(datagram.source_id, channel)] += 1
+        if channel == channels.ACTUATOR_COMMAND:
+            self.commands_ns.append(datagram.t_pub_ns)
+            return
         if channel in (channels.SIM_TRUTH, channels.VEHICLE_STATE):
             if t_ns < self._next_sample_ns[channel]:
                 return
@@ -175,6 +184,7 @@ class _Reader:
         if channel in (channels.SIM_TRUTH, channels.VEHICLE_STATE):
             self.samples[channel].append((t_s, msg.east_m, msg.north_m, msg.speed_mps))
         elif channel == channels.PATH:
+            self.path_inputs.append((datagram.t_pub_ns, msg.t_input_ns))
             if len(msg.points) >= 2:
                 self.paths.append((t_s, np.array([(p.east_m, p.north_m) for p in msg.points])))
         elif channel == channels.MAP_SNAPSHOT:

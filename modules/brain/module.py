@@ -32,6 +32,7 @@ SENSOR_NAMES = {
     Sensor.LIDAR_SWEEP: "lidar_sweep",
     Sensor.ESVS: STEREO,
 }
+OBSTACLE_SENSORS = (*HORIZONTAL_LIDARS, STEREO)  # whose age a path's t_input_ns reports
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
 MODE_SEVERITY = {
     DriveMode.NORMAL: Severity.INFO,
@@ -151,7 +152,9 @@ class Brain(Module):
             if self.refused == 1 or self.refused % 100 == 0:
                 self.report(Severity.ERROR, "plan_refused", f"{exc} ({self.refused} cycles so far)")
             return
-        self.bus.publish(channels.PATH, self.last.path, t_meas_ns=self.state_t_ns)
+        oldest = self.health.oldest_live_ns(OBSTACLE_SENSORS, self.now_ns())
+        path = self.last.path._replace(t_input_ns=oldest or 0)
+        self.bus.publish(channels.PATH, path, t_meas_ns=self.state_t_ns)
         self.published += 1
         self.cycle_ms = (time.perf_counter() - started) * 1e3
 

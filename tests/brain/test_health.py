@@ -120,3 +120,16 @@ def test_late_messages_never_roll_the_clock_back() -> None:
     health.heard(STEREO, 9 * S)
     assert health.last_ns[STEREO] == 10 * S
     assert stopping_speed_mps(HealthParams().margin_m, HealthParams()) == 0.0
+
+
+def test_the_oldest_live_input_is_the_stalest_picture_a_plan_uses() -> None:
+    health = SensorHealth()
+    ms = S // 1000
+    health.heard("lidar_h_left", 10_000 * ms)
+    health.heard("lidar_h_right", 10_050 * ms)
+    health.heard(STEREO, 9_700 * ms)
+    sources = ("lidar_h_left", "lidar_h_right", STEREO)
+    assert health.oldest_live_ns(sources, 10_100 * ms) == 9_700 * ms
+    # Past their age limits (stereo 0.5 s, lidars 0.2 s) silent inputs are not counted.
+    assert health.oldest_live_ns(sources, 10_210 * ms) == 10_050 * ms
+    assert health.oldest_live_ns(sources, 60 * S) is None

@@ -33,7 +33,7 @@ GOLDEN: dict[int, tuple[str, str]] = {
     22: ("SurfaceProfile", "84559fb4ccd5d120"),
     23: ("LaneBorders", "8ff4b3d6abcaa405"),
     24: ("GroundSweep", "7a5b86b4a0099cbd"),
-    30: ("Path", "87456c6d3741de56"),
+    30: ("Path", "b45a38a927bfcf88"),
     31: ("ActuatorCommand", "c06cc43844c9b5e0"),
     32: ("StopCommand", "3b3c936b4632a3d6"),
     40: ("MapSnapshot", "e05fe0c760424aea"),

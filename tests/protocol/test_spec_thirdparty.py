@@ -425,6 +425,7 @@ NOTES = {
     ("LaneBorder", "c1"): "1 (slope)",
     ("LaneBorder", "confidence"): "0..1",
     ("Path", "path_id"): "changes when the planner re-plans",
+    ("Path", "t_input_ns"): "ns, shared time: the oldest of the newest obstacle inputs planned from; 0 unknown",
     ("ActuatorCommand", "throttle"): "fraction 0..1",
     ("ActuatorCommand", "brake"): "fraction 0..1",
     ("ActuatorCommand", "steering_rad"): "rad, front wheels, left positive",

@@ -20,7 +20,7 @@ from brain.grid import GridWindow
 from brain.planning.frame import CorridorFrame
 from brain.rddf_cli import Canvas, speed_colors
 from protocol import channels
-from protocol.messages import ModuleStatus, PathPoint, SimTruth, VehicleState
+from protocol.messages import ActuatorCommand, ModuleStatus, PathPoint, SimTruth, VehicleState
 from protocol.messages import Path as PlannedPath
 from rascal.cli import main
 from rascal.deployment import load_deployment
@@ -46,6 +46,7 @@ height_m = 1.0
 """
 SPEED_MPS = 5.0
 DRIVE_S = 40.0
+MS = 1_000_000
 HAZARD_AT = (60.0, -4.0)  # station, offset: something the brain mapped (nothing is there in the scenario)
 
 
@@ -72,7 +73,9 @@ def _drive(frame: CorridorFrame) -> list[tuple[str, object, int]]:
             ahead = np.arange(s, s + 40.0, 2.0)
             pe, pn = frame.to_enu(ahead, np.zeros_like(ahead))
             points = tuple(PathPoint(float(e), float(n), SPEED_MPS) for e, n in zip(pe, pn, strict=True))
-            messages.append((channels.PATH, PlannedPath(k, points, False), t_ns + 2000))
+            # Planned from inputs measured 60 ms before it was logged; the command below follows it.
+            messages.append((channels.PATH, PlannedPath(k, points, False, t_ns + 2000 - 60 * MS), t_ns + 2000))
+            messages.append((channels.ACTUATOR_COMMAND, ActuatorCommand(0.2, 0.0, 0.0), t_ns + 5000))
         if k % 100 == 0:
             window = GridWindow(east - 20.0, north - 20.0, 0.4, 100, 100)
             probability = np.full(window.shape, 0.5, dtype=np.float32)
@@ -116,6 +119,10 @@ def _colour_pixels(image: np.ndarray, colour: tuple[int, int, int], tolerance: i
 def test_the_report_draws_the_drive_where_it_happened(run_dir: Path) -> None:
     report = build_report(run_dir)
     assert set(report.images) == {"track", "map", "speed", "cross_track", "timing"}
+    # Each path's input, measured 60 ms before the path was logged, to the first command after it,
+    # published 1 ms before it was logged 3 us after the path (the recording's stamps): 59 ms.
+    assert report.latency_ms["p50"] == report.latency_ms["p99"] == 59.0
+    assert report.latency_ms["samples"] == DRIVE_S * 100 // 20
     images = {name: cv2.imread(str(path)) for name, path in report.images.items()}
     assert all(image is not None for image in images.values())
     data = read_run(run_dir)
