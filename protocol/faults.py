@@ -249,8 +249,8 @@ class FaultyTransport(Transport):
     def send(self, channel: str, datagram: bytes) -> None:
         self.inner.send(channel, datagram)
 
-    def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
-        self.inner.listen(channel, kernel_timestamps)
+    def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
+        self.inner.listen(channel, kernel_timestamps, wake)
 
     def listen_all(self) -> None:
         self.inner.listen_all()

@@ -50,10 +50,13 @@ class Transport(ABC):
     def send(self, channel: str, datagram: bytes) -> None: ...
 
     @abstractmethod
-    def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
+    def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         """Start receiving datagrams of ``channel`` (and whatever shares its port). With
         ``kernel_timestamps``, datagrams come with the kernel's CLOCK_REALTIME arrival time
-        where the transport can tell it (time sync needs it: wake-up latency is asymmetric)."""
+        where the transport can tell it (time sync needs it: wake-up latency is asymmetric).
+        ``wake=False``: arrivals on it do not end a :meth:`receive` wait; they are handed over
+        when the wait ends anyway (for values read only by periodic work). Asking again with
+        ``wake=True`` makes it wake."""
 
     @abstractmethod
     def listen_all(self) -> None:
@@ -96,6 +99,8 @@ class UdpMulticastTransport(Transport):
         self._by_fd: dict[int, socket.socket] = {}
         self._timestamped: set[int] = set()
         self._epoll = select.epoll()
+        self._waking: set[int] = set()  # fds in the epoll set; the other sockets are drained after each wait
+        self._lazy: list[socket.socket] = []
         self._destinations: dict[str, tuple[tuple[str, int], ...]] = {}
         self.send_drops = 0
 
@@ -112,20 +117,31 @@ class UdpMulticastTransport(Transport):
                 # The socket send buffer is full: UDP semantics, the datagram is lost; counted.
                 self.send_drops += 1
 
-    def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
+    def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         port = self.config.port(channel)
-        self._open_port(port)
-        if kernel_timestamps and port not in self._timestamped:
-            self._rx[port].setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-            self._timestamped.add(self._rx[port].fileno())
+        rx = self._open_port(port, wake)
+        # A socket read only after a wait has its datagrams' arrival times from the kernel, so
+        # late reading does not add to their measured latency.
+        if (kernel_timestamps or rx.fileno() not in self._waking) and rx.fileno() not in self._timestamped:
+            rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            self._timestamped.add(rx.fileno())
 
     def listen_all(self) -> None:
         for offset in range(self.config.span):
-            self._open_port(self.config.base_port + offset)
+            self._open_port(self.config.base_port + offset, wake=True)
 
-    def _open_port(self, port: int) -> None:
-        if port in self._rx:
-            return
+    def _open_port(self, port: int, wake: bool) -> socket.socket:
+        rx = self._rx.get(port) or self._new_socket(port)
+        if wake and rx.fileno() not in self._waking:
+            if rx in self._lazy:
+                self._lazy.remove(rx)
+            self._epoll.register(rx.fileno(), select.EPOLLIN)
+            self._waking.add(rx.fileno())
+        elif not wake and rx.fileno() not in self._waking and rx not in self._lazy:
+            self._lazy.append(rx)
+        return rx
+
+    def _new_socket(self, port: int) -> socket.socket:
         rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
@@ -141,7 +157,7 @@ class UdpMulticastTransport(Transport):
         rx.setblocking(False)
         self._rx[port] = rx
         self._by_fd[rx.fileno()] = rx
-        self._epoll.register(rx.fileno(), select.EPOLLIN)
+        return rx
 
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:
         # Wait first, then read only the sockets that are ready: an empty non-blocking recv
@@ -159,6 +175,8 @@ class UdpMulticastTransport(Transport):
                     break
                 handled += 1
                 deliver(datagram)
+        for rx in self._lazy:
+            handled += self._receive_timestamped(rx, deliver, budget - handled)
         return handled
 
     @staticmethod
@@ -226,7 +244,7 @@ class MemTransport(Transport):
                     member._queue.append(datagram)
                     member._arrived.notify()
 
-    def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
+    def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         self._channels.add(channel)
 
     def listen_all(self) -> None:
@@ -267,7 +285,7 @@ class ZmqSubscriberTransport(Transport):
     def send(self, channel: str, datagram: bytes) -> None:
         raise RuntimeError("a zmq:// bus is receive-only; publish on the vehicle bus")
 
-    def listen(self, channel: str, kernel_timestamps: bool = False) -> None:
+    def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         self._socket.setsockopt(self._zmq.SUBSCRIBE, channel.encode("ascii") + b"\0")
 
     def listen_all(self) -> None:

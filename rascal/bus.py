@@ -73,7 +73,7 @@ class ChannelStats:
 class _Route:
     """Everything the receive path needs for one subscribed channel, found with one lookup."""
 
-    __slots__ = ("channel", "decode", "freshness_exempt", "handlers", "latest", "plan", "type_id")
+    __slots__ = ("channel", "decode", "freshness_exempt", "handlers", "latest", "plan", "type_id", "wake")
 
     def __init__(self, channel: str, type_id: int) -> None:
         self.channel = channel
@@ -84,6 +84,7 @@ class _Route:
         self.plan = info.plan
         self.handlers: list[Handler] = []
         self.latest: list[Latest[Any]] = []
+        self.wake = False  # a handler wants each message as it comes; latest values wait for a poll's end
 
 
 class Bus:
@@ -188,14 +189,17 @@ class Bus:
 
     # -- subscribing --------------------------------------------------------------------------
 
-    def subscribe(self, channel: str, handler: Handler, msg_type: type | None = None) -> None:
-        """Call ``handler(msg, envelope)`` for every accepted message on ``channel``."""
-        self._subscription(channel, msg_type).handlers.append(handler)
+    def subscribe(self, channel: str, handler: Handler, msg_type: type | None = None, *, wake: bool = True) -> None:
+        """Call ``handler(msg, envelope)`` for every accepted message on ``channel``: as it
+        arrives (a :meth:`poll` returns for it), or with ``wake=False`` when the poll's wait ends."""
+        self._subscription(channel, msg_type, wake).handlers.append(handler)
 
     def latest(self, channel: str, max_age_ns: int, msg_type: type | None = None) -> Latest[Any]:
-        """A latest-value entry for ``channel`` with temporal validity ``max_age_ns``."""
+        """A latest-value entry for ``channel`` with temporal validity ``max_age_ns``. Its
+        messages do not wake a :meth:`poll`: periodic work reads it after the wait, and only
+        then are they received (a module is not woken at 100 Hz for a value it reads at 25)."""
         entry: Latest[Any] = Latest(channel, max_age_ns)
-        self._subscription(channel, msg_type).latest.append(entry)
+        self._subscription(channel, msg_type, wake=False).latest.append(entry)
         return entry
 
     def subscribe_raw(self, handler: RawHandler) -> None:
@@ -204,16 +208,19 @@ class Bus:
         self._raw_handlers.append(handler)
         self.transport.listen_all()
 
-    def _subscription(self, channel: str, msg_type: type | None) -> _Route:
+    def _subscription(self, channel: str, msg_type: type | None, wake: bool) -> _Route:
         resolved = channels.type_for(channel, msg_type)
         type_id = info_for_class(resolved).type_id
         sub = self._subs.get(channel)
+        new = sub is None
         if sub is None:
             check_channel(channel)
             sub = self._subs[channel] = _Route(channel, type_id)
-            self.transport.listen(channel, kernel_timestamps=channel in KERNEL_TIMESTAMPED)
         elif sub.type_id != type_id:
             raise TypeError(f"channel {channel} is already subscribed with another type")
+        if new or (wake and not sub.wake):
+            sub.wake = sub.wake or wake
+            self.transport.listen(channel, kernel_timestamps=channel in KERNEL_TIMESTAMPED, wake=sub.wake)
         return sub
 
     # -- receiving ----------------------------------------------------------------------------

@@ -98,3 +98,29 @@ def test_unicast_peers_receive_without_joining_multicast(bus_url: str) -> None:
     assert got == [WheelSpeed(3.0, 10.0)]
     publisher.close()
     receiver.close()
+
+
+def test_a_latest_value_does_not_wake_the_poll_and_keeps_its_arrival_time(bus_url: str) -> None:
+    """A module reads latest values in its periodic work: their messages wait for the end of the
+    poll's wait, with the kernel's arrival time, while a handler's message ends the wait at once."""
+    keyring = Keyring.generate()
+    publisher = Bus.open(bus_url, source_id=1, clock=MasterClock(), keyring=keyring)
+    receiver = Bus.open(bus_url, source_id=2, clock=MasterClock(), keyring=keyring)
+    speed = receiver.latest(channels.WHEEL_SPEED, 5_000_000_000)
+    published_ns = time.time_ns()
+    publisher.publish(channels.WHEEL_SPEED, WheelSpeed(3.0, 10.0))
+    start = time.perf_counter()
+    assert receiver.poll(0.3) == 1
+    assert time.perf_counter() - start >= 0.29  # the whole wait: the value did not wake it
+    envelope = speed.read(receiver.clock.now_ns()).envelope
+    assert envelope is not None and envelope.recv_ns - published_ns < 50_000_000  # as it arrived, not 0.3 s later
+    # A handler on the same channel makes it wake.
+    got: list[WheelSpeed] = []
+    receiver.subscribe(channels.WHEEL_SPEED, lambda msg, env: got.append(msg))
+    publisher.publish(channels.WHEEL_SPEED, WheelSpeed(4.0, 11.0))
+    start = time.perf_counter()
+    assert receiver.poll(2.0) == 1
+    assert time.perf_counter() - start < 0.2 and got == [WheelSpeed(4.0, 11.0)]
+    assert speed.read(receiver.clock.now_ns()).value == WheelSpeed(4.0, 11.0)
+    publisher.close()
+    receiver.close()
