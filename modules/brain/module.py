@@ -49,6 +49,9 @@ class BrainConfig:
     course: str = setting(str(DEFAULT_COURSE), "RDDF file: the corridor and speed limits planned in")
     origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
     plan_rate_hz: float = setting(10.0, "planning cycles (and Path messages) per second")
+    plan_on_stereo: bool = setting(
+        True, "a stereo report (the slowest obstacle input) starts a cycle at once; the rate carries on from it"
+    )
     snapshot_rate_hz: float = setting(1.0, "map snapshots per second on MAP_SNAPSHOT (0: none)")
     snapshot_downsample: int = setting(2, "snapshot cells are this many map cells a side (max of each block)")
     sensors: tuple[str, ...] = setting((*LIDARS, STEREO), "obstacle sensors this vehicle has (health expects them)")
@@ -71,6 +74,7 @@ class Brain(Module):
         self.mode: DriveMode | None = None
         self.last: PlanResult | None = None
         self.cycle_ms = 0.0
+        self.last_rephase_ns = 0  # monotonic time a stereo report last started a cycle
         self.published = 0
         self.refused = 0
 
@@ -109,6 +113,19 @@ class Brain(Module):
     def on_obstacles(self, message: ObstacleList, envelope: Envelope) -> None:
         self._heard(message.sensor, envelope.t_meas_ns)
         self.fusion.add_obstacles(envelope.t_meas_ns, message)
+        if message.sensor == Sensor.ESVS and self.config.plan_on_stereo:
+            self._plan_soon()
+
+    def _plan_soon(self) -> None:
+        """Move the planning grid to start now: the ESVS's report is the input that waits longest
+        (exposure, a round, processing), so planning on its arrival, not up to a period later,
+        is what keeps obstacle-to-actuator latency low. At most one report per half period does
+        this, so a faster ESVS cannot more than double the planning rate."""
+        period_s = 1.0 / self.config.plan_rate_hz
+        now = time.monotonic_ns()
+        if now - self.last_rephase_ns >= period_s * 0.5e9:
+            self.last_rephase_ns = now
+            self.runtime.set_period("plan", period_s, first_in_s=0.0)
 
     def on_profile(self, message: SurfaceProfile, envelope: Envelope) -> None:
         self._heard(message.sensor, envelope.t_meas_ns)
