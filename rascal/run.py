@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from collections import Counter
 from collections.abc import Sequence
@@ -288,6 +289,20 @@ def _latency_line(latency_ms: dict[str, float | int]) -> str:
     return f"p50 {latency_ms['p50']} ms, p99 {latency_ms['p99']} ms over {latency_ms['samples']} paths"
 
 
+def cpu_list(text: str) -> set[int]:
+    """CPU numbers as taskset and cgroups write them: ``0``, ``0,2``, ``1-3``."""
+    cpus: set[int] = set()
+    try:
+        for part in text.split(","):
+            low, dash, high = part.partition("-")
+            cpus.update(range(int(low), int(high if dash else low) + 1))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected CPU numbers like 0 or 0,2-3, got {text!r}") from None
+    if not cpus or min(cpus) < 0:
+        raise argparse.ArgumentTypeError(f"expected CPU numbers like 0 or 0,2-3, got {text!r}")
+    return cpus
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rascal run", description=__doc__.splitlines()[0])
     parser.add_argument("deployment", nargs="?", default=str(DEFAULT_DEPLOYMENT), help="deployment TOML")
@@ -296,6 +311,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where run directories go")
     parser.add_argument("--view", action="store_true", help="serve the live view (rascal view) alongside the drive")
     parser.add_argument("--view-port", type=int, default=8090, help="HTTP port of the live view")
+    parser.add_argument(
+        "--cpus",
+        type=cpu_list,
+        help="run the supervisor and every module on these CPUs only, e.g. 0 or 0,2-3 (does the stack fit?)",
+    )
     args = parser.parse_args(argv)
     try:
         deployment = load_deployment(args.deployment)
@@ -305,5 +325,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(exc))
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         parser.error("--duration must be a positive number of seconds")
+    if args.cpus is not None:
+        try:
+            os.sched_setaffinity(0, args.cpus)  # the modules inherit it
+        except (OSError, AttributeError) as exc:
+            parser.error(f"--cpus: cannot confine this process to CPUs {sorted(args.cpus)}: {exc}")
     status, _ = run(deployment, host, args.runs_dir, args.duration, view_port=args.view_port if args.view else None)
     return status

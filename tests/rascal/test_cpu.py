@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import subprocess
 import sys
@@ -10,6 +11,7 @@ import time
 import pytest
 
 from rascal.cpu import UNKNOWN_PCT, CpuMeter, descendants, process_cpu_ns
+from rascal.run import cpu_list
 from rascal.supervisor import CPU_BUDGET_BEATS, CpuBooks
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc (Linux)")
@@ -76,3 +78,14 @@ def test_over_budget_for_ten_beats_is_said_once_until_it_comes_back_under() -> N
     assert books.add(5.0) is False
     assert [books.add(11.0) for _ in range(CPU_BUDGET_BEATS)][-1] is True  # a new run over it
     assert books.mean_pct == pytest.approx(books.total_pct / books.beats) and books.peak_pct == 12.0
+
+
+@pytest.mark.parametrize(("text", "cpus"), [("0", {0}), ("0,2", {0, 2}), ("1-3", {1, 2, 3}), ("0,2-3", {0, 2, 3})])
+def test_rascal_run_takes_cpu_lists_as_taskset_writes_them(text: str, cpus: set[int]) -> None:
+    assert cpu_list(text) == cpus
+
+
+@pytest.mark.parametrize("text", ["", "x", "1-", "-1", "0,,1"])
+def test_a_bad_cpu_list_is_refused(text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match="expected CPU numbers"):
+        cpu_list(text)
