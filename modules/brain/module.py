@@ -10,9 +10,11 @@ moment a cycle sees it. A map snapshot goes out on MAP_SNAPSHOT once a second.
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
+import numpy as np
 
 from brain.course_config import DEFAULT_COURSE, load_course
 from brain.fusion.fusion import HazardFusion
@@ -33,6 +35,7 @@ SENSOR_NAMES = {
     Sensor.ESVS: STEREO,
 }
 OBSTACLE_SENSORS = (*HORIZONTAL_LIDARS, STEREO)  # whose age a path's t_input_ns reports
+CYCLES_KEPT = 3000  # planning cycles the heartbeat's p99 spans: 5 min at 10 Hz
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
 MODE_SEVERITY = {
     DriveMode.NORMAL: Severity.INFO,
@@ -74,6 +77,7 @@ class Brain(Module):
         self.mode: DriveMode | None = None
         self.last: PlanResult | None = None
         self.cycle_ms = 0.0
+        self.cycles_ms: deque[float] = deque(maxlen=CYCLES_KEPT)  # for the heartbeat's p99
         self.last_rephase_ns = 0  # monotonic time a stereo report last started a cycle
         self.published = 0
         self.refused = 0
@@ -174,6 +178,7 @@ class Brain(Module):
         self.bus.publish(channels.PATH, path, t_meas_ns=self.state_t_ns)
         self.published += 1
         self.cycle_ms = (time.perf_counter() - started) * 1e3
+        self.cycles_ms.append(self.cycle_ms)
 
     def snapshot(self) -> None:
         if self.fusion.window is not None:
@@ -188,6 +193,7 @@ class Brain(Module):
         stats = self.fusion.stats
         return (
             f"{mode}; {plan.mode.value} path {plan.path.path_id} at s={plan.station_m:.0f} m, "
-            f"{speed:.1f} m/s{' SLOW' if plan.slow_mode else ''}; cycle {self.cycle_ms:.1f} ms; "
+            f"{speed:.1f} m/s{' SLOW' if plan.slow_mode else ''}; cycle {self.cycle_ms:.1f} ms "
+            f"(p99 {np.percentile(self.cycles_ms, 99):.1f}); "
             f"fused {stats.messages} msgs, refused no-pose {stats.no_pose}"
         )
