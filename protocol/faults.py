@@ -252,8 +252,8 @@ class FaultyTransport(Transport):
     def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         self.inner.listen(channel, kernel_timestamps, wake)
 
-    def listen_all(self) -> None:
-        self.inner.listen_all()
+    def listen_all(self, wake: bool = True) -> None:
+        self.inner.listen_all(wake)
 
     def held(self) -> int:
         """Datagrams waiting for their release time."""

@@ -14,6 +14,7 @@ Transports never block longer than asked: modules wait in :meth:`Transport.recei
 from __future__ import annotations
 
 import ipaddress
+import itertools
 import os
 import select
 import socket
@@ -59,8 +60,9 @@ class Transport(ABC):
         ``wake=True`` makes it wake."""
 
     @abstractmethod
-    def listen_all(self) -> None:
-        """Receive every channel: for bus tools that discover what is on the bus."""
+    def listen_all(self, wake: bool = True) -> None:
+        """Receive every channel: for bus tools that discover what is on the bus (``wake`` as
+        for :meth:`listen`: a recorder need not wake for each datagram)."""
 
     @abstractmethod
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:
@@ -99,8 +101,8 @@ class UdpMulticastTransport(Transport):
         self._by_fd: dict[int, socket.socket] = {}
         self._timestamped: set[int] = set()
         self._epoll = select.epoll()
-        self._waking: set[int] = set()  # fds in the epoll set; the other sockets are drained after each wait
-        self._lazy: list[socket.socket] = []
+        self._waking: set[int] = set()  # fds whose datagrams end a wait
+        self._idle = select.epoll()  # the others: read after each wait, those that have datagrams
         self._destinations: dict[str, tuple[tuple[str, int], ...]] = {}
         self.send_drops = 0
 
@@ -118,7 +120,13 @@ class UdpMulticastTransport(Transport):
                 self.send_drops += 1
 
     def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
-        port = self.config.port(channel)
+        self._listen_port(self.config.port(channel), kernel_timestamps, wake)
+
+    def listen_all(self, wake: bool = True) -> None:
+        for offset in range(self.config.span):
+            self._listen_port(self.config.base_port + offset, False, wake)
+
+    def _listen_port(self, port: int, kernel_timestamps: bool, wake: bool) -> None:
         rx = self._open_port(port, wake)
         # A socket read only after a wait has its datagrams' arrival times from the kernel, so
         # late reading does not add to their measured latency.
@@ -126,19 +134,17 @@ class UdpMulticastTransport(Transport):
             rx.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             self._timestamped.add(rx.fileno())
 
-    def listen_all(self) -> None:
-        for offset in range(self.config.span):
-            self._open_port(self.config.base_port + offset, wake=True)
-
     def _open_port(self, port: int, wake: bool) -> socket.socket:
-        rx = self._rx.get(port) or self._new_socket(port)
-        if wake and rx.fileno() not in self._waking:
-            if rx in self._lazy:
-                self._lazy.remove(rx)
+        rx = self._rx.get(port)
+        if rx is None:
+            rx = self._new_socket(port)
+            (self._epoll if wake else self._idle).register(rx.fileno(), select.EPOLLIN)
+            if wake:
+                self._waking.add(rx.fileno())
+        elif wake and rx.fileno() not in self._waking:
+            self._idle.unregister(rx.fileno())
             self._epoll.register(rx.fileno(), select.EPOLLIN)
             self._waking.add(rx.fileno())
-        elif not wake and rx.fileno() not in self._waking and rx not in self._lazy:
-            self._lazy.append(rx)
         return rx
 
     def _new_socket(self, port: int) -> socket.socket:
@@ -163,7 +169,8 @@ class UdpMulticastTransport(Transport):
         # Wait first, then read only the sockets that are ready: an empty non-blocking recv
         # costs an exception (~2 us), which matters at 1 kHz and at 80 k msg/s alike.
         handled = 0
-        for fd, _events in self._epoll.poll(max(timeout_s, 0.0)):
+        ready = self._epoll.poll(max(timeout_s, 0.0))
+        for fd, _events in itertools.chain(ready, self._idle.poll(0)):
             if fd in self._timestamped:
                 handled += self._receive_timestamped(self._by_fd[fd], deliver, budget - handled)
                 continue
@@ -175,8 +182,6 @@ class UdpMulticastTransport(Transport):
                     break
                 handled += 1
                 deliver(datagram)
-        for rx in self._lazy:
-            handled += self._receive_timestamped(rx, deliver, budget - handled)
         return handled
 
     @staticmethod
@@ -199,6 +204,7 @@ class UdpMulticastTransport(Transport):
 
     def close(self) -> None:
         self._epoll.close()
+        self._idle.close()
         for rx in self._rx.values():
             rx.close()
         self._rx.clear()
@@ -247,7 +253,7 @@ class MemTransport(Transport):
     def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         self._channels.add(channel)
 
-    def listen_all(self) -> None:
+    def listen_all(self, wake: bool = True) -> None:
         self._all = True
 
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:
@@ -288,7 +294,7 @@ class ZmqSubscriberTransport(Transport):
     def listen(self, channel: str, kernel_timestamps: bool = False, wake: bool = True) -> None:
         self._socket.setsockopt(self._zmq.SUBSCRIBE, channel.encode("ascii") + b"\0")
 
-    def listen_all(self) -> None:
+    def listen_all(self, wake: bool = True) -> None:
         self._socket.setsockopt(self._zmq.SUBSCRIBE, b"")
 
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:

@@ -202,11 +202,12 @@ class Bus:
         self._subscription(channel, msg_type, wake=False).latest.append(entry)
         return entry
 
-    def subscribe_raw(self, handler: RawHandler) -> None:
+    def subscribe_raw(self, handler: RawHandler, *, wake: bool = True) -> None:
         """Every authenticated message on every channel, undecoded: for bus tools and loggers.
-        ``handler(opened, message_bytes, recv_ns)``."""
+        ``handler(opened, message_bytes, recv_ns)``; ``wake=False`` as for :meth:`subscribe`
+        (a recorder has no hurry: it takes what came when its periodic work is due)."""
         self._raw_handlers.append(handler)
-        self.transport.listen_all()
+        self.transport.listen_all(wake)
 
     def _subscription(self, channel: str, msg_type: type | None, wake: bool) -> _Route:
         resolved = channels.type_for(channel, msg_type)
