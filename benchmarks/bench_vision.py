@@ -24,8 +24,8 @@ from benchmarks.report import Table, machine_line, print_table
 from modules.esvs.camera import StereoFrame, render_pair
 from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.vision import STAGES, VisionParams, process
-from modules.esvs.vision.band import Band, BandParams, band_rows
-from modules.esvs.vision.disparity import REALTIME, MatcherParams, compute_disparity
+from modules.esvs.vision.band import Band, BandParams, band_disparity, band_rows
+from modules.esvs.vision.disparity import REALTIME, MatcherParams
 from modules.lidar.raycast import Pose2D
 from modules.sim.scenario import load_scenario
 from modules.sim.world import LaneBorderLine, Shape, Texture, World, WorldObstacle
@@ -34,12 +34,12 @@ from modules.sim.world import LaneBorderLine, Shape, Texture, World, WorldObstac
 MATCHERS: list[tuple[str, BandParams, MatcherParams]] = [
     ("SGBM block 5", BandParams(), MatcherParams(mode="sgbm", block_size=5, texture_threshold=1.0)),
     ("HH4 block 5", BandParams(), MatcherParams(mode="hh4", block_size=5, texture_threshold=1.0)),
-    ("3-way block 3", BandParams(), MatcherParams(block_size=3, texture_threshold=1.0)),
     ("3-way block 5", BandParams(), MatcherParams(block_size=5, texture_threshold=1.0)),
-    ("3-way block 7 (chosen)", BandParams(), REALTIME),
-    ("3-way block 7, no texture check", BandParams(), replace(REALTIME, texture_threshold=0.0)),
-    ("3-way block 7, 48 disparities", BandParams(), replace(REALTIME, num_disparities=48)),
-    ("3-way block 7, band to 1.5 m", BandParams(obstacle_height_m=1.5), REALTIME),
+    ("3-way block 7", BandParams(), MatcherParams(block_size=7, texture_threshold=1.0)),
+    ("BM block 11 (chosen)", BandParams(), REALTIME),
+    ("BM block 11, no texture check", BandParams(), replace(REALTIME, texture_threshold=0.0)),
+    ("BM block 11, 48 disparities", BandParams(), replace(REALTIME, num_disparities=48)),
+    ("BM block 11, band to 1.5 m", BandParams(obstacle_height_m=1.5), REALTIME),
 ]
 FULL_FRAME = Band(0, RASCAL_RIG.height_px)
 
@@ -64,12 +64,11 @@ def matcher_row(label: str, band: Band, params: MatcherParams, frames: list[Ster
     fb = RASCAL_RIG.focal_px * RASCAL_RIG.baseline_m
     seconds, bad, matched, judged, sky_matched, sky = [], 0, 0, 0, 0, 0
     for frame in frames:
-        left, right = frame.left[band.top : band.bottom], frame.right[band.top : band.bottom]
         truth = frame.disparity_px[band.top : band.bottom]
-        disparity = compute_disparity(left, right, params)
+        disparity = band_disparity(frame.left, frame.right, band, params)  # as the pipeline matches it
         for _ in range(repeats):
             start = time.perf_counter()
-            compute_disparity(left, right, params)
+            band_disparity(frame.left, frame.right, band, params)
             seconds.append(time.perf_counter() - start)
         in_range = (truth >= fb / 40) & (truth <= fb / 8)
         in_range[:, : params.num_disparities] = False  # no matcher can reach these columns

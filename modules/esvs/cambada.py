@@ -16,9 +16,8 @@ from typing import NamedTuple
 import numpy as np
 
 from modules.esvs.geometry import StereoRig
-from modules.esvs.vision.band import Band, band_rows, vehicle_points
+from modules.esvs.vision.band import Band, band_disparity, band_rows, vehicle_points
 from modules.esvs.vision.clusters import describe
-from modules.esvs.vision.disparity import compute_disparity
 from modules.esvs.vision.lane_fit import fit_borders
 from modules.esvs.vision.lane_heat import heat_map, off_ground, pixel_scores
 from modules.esvs.vision.obstacle_points import obstacle_points
@@ -45,7 +44,7 @@ def stereo(
     clock = time.perf_counter
     start = clock()
     band_left = left[band.top : band.bottom]
-    disparity = compute_disparity(band_left, right[band.top : band.bottom], params.matcher)
+    disparity = band_disparity(left, right, band, params.matcher)
     timings["disparity"], start = clock() - start, clock()
     x, y, z = vehicle_points(disparity, rig, band.top)
     timings["reproject"], start = clock() - start, clock()

@@ -222,9 +222,12 @@ class Heard:
 
 
 @contextmanager
-def drive(tmp_path: Path, bus_url: str, key_file: Path, deploy: Path, duration_s: float = 240.0) -> Iterator[Heard]:
-    """`rascal run` on ``deploy``; the ``with`` body runs while the stack drives, then the run is
-    awaited (it ends at the end of the course, or after ``duration_s``) and its summary read."""
+def drive(
+    tmp_path: Path, bus_url: str, key_file: Path, deploy: Path, duration_s: float = 240.0, cpus: str | None = None
+) -> Iterator[Heard]:
+    """`rascal run` on ``deploy`` (on the CPUs ``cpus`` names only, if given); the ``with`` body
+    runs while the stack drives, then the run is awaited (it ends at the end of the course, or
+    after ``duration_s``) and its summary read."""
     runs = tmp_path / "runs"
     log_path = tmp_path / "run.log"
     command = [
@@ -237,6 +240,7 @@ def drive(tmp_path: Path, bus_url: str, key_file: Path, deploy: Path, duration_s
         str(duration_s),
         "--runs-dir",
         str(runs),
+        *(("--cpus", cpus) if cpus is not None else ()),
     ]
     with log_path.open("wb") as log:
         supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)

@@ -11,10 +11,10 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
 from modules.esvs.geometry import StereoRig
+from modules.esvs.vision.disparity import MatcherParams, compute_disparity
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,15 @@ def band_rows(rig: StereoRig, params: BandParams) -> Band:
     return Band(max(0, top), min(rig.height_px, bottom))
 
 
+def band_disparity(left: np.ndarray, right: np.ndarray, band: Band, params: MatcherParams) -> np.ndarray:
+    """Disparity of the band's rows of a whole pair, matched with the rows the matcher leaves
+    without a match at the edges of its input added above and below, where the image has them."""
+    pad = params.border_rows
+    top, bottom = max(0, band.top - pad), min(left.shape[0], band.bottom + pad)
+    disparity = compute_disparity(left[top:bottom], right[top:bottom], params)
+    return disparity[band.top - top : band.bottom - top]
+
+
 @lru_cache(maxsize=16)
 def band_to_vehicle(rig: StereoRig, top: int) -> np.ndarray:
     """4x4 matrix taking (column, row in the band, disparity, 1) to homogeneous VEHICLE points:
@@ -69,10 +78,33 @@ def band_to_vehicle(rig: StereoRig, top: int) -> np.ndarray:
     return to_vehicle @ rig.q_matrix @ shift
 
 
+@lru_cache(maxsize=16)
+def band_rays(rig: StereoRig, top: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``band_to_vehicle`` solved ahead, its homogeneous coordinate being disparity / baseline alone
+    (rectified, one cx): VEHICLE coordinate i of the pixel at (column u, band row v) is
+    (per_column[i, u] + rows[i, 0] * v + rows[i, 1]) / disparity + offset[i]. Separable, so no
+    per-pixel table has to come back into the cache each frame."""
+    matrix = band_to_vehicle(rig, top)
+    scale = matrix[3, 2]
+    if np.any(matrix[3, [0, 1, 3]]) or scale == 0:
+        raise ValueError("the rig's Q matrix must make the homogeneous coordinate proportional to disparity")
+    per_column = np.outer(matrix[:3, 0], np.arange(rig.width_px)) / scale
+    rows = matrix[:3, [1, 3]] / scale
+    return per_column.astype(np.float32), rows, matrix[:3, 2] / scale
+
+
 def vehicle_points(disparity: np.ndarray, rig: StereoRig, top: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """VEHICLE x, y, z (float32 planes, NaN where the disparity is) of every band pixel."""
-    xyz = cv2.reprojectImageTo3D(disparity, band_to_vehicle(rig, top).astype(np.float32))
-    x, y, z = cv2.split(xyz)
+    per_column, rows, offset = band_rays(rig, top)
+    band_row = np.arange(disparity.shape[0])[:, None]
+    inverse = np.reciprocal(disparity, dtype=np.float32)
+    planes = []
+    for i in range(3):
+        plane = per_column[i] + (rows[i, 0] * band_row + rows[i, 1]).astype(np.float32)
+        plane *= inverse
+        plane += np.float32(offset[i])
+        planes.append(plane)
+    x, y, z = planes
     return x, y, z
 
 

@@ -75,16 +75,17 @@ def fit_borders(heat: HeatMap, params: FitParams | None = None) -> tuple[LaneBor
     borders = []
     for _ in range(params.max_borders):
         candidates = np.flatnonzero(free & in_fit)
-        coefficients = ransac(xs[candidates], ys[candidates], weights[candidates], params, rng)
+        candidate_x, candidate_y = xs[candidates], ys[candidates]
+        coefficients = ransac(candidate_x, candidate_y, weights[candidates], params, rng)
         if coefficients is None:
             break
-        inliers = candidates[np.abs(ys[candidates] - np.polyval(coefficients, xs[candidates])) < params.inlier_m]
-        if np.unique(rows[inliers]).size < params.min_rows:
+        inliers = candidates[_near(candidate_x, candidate_y, coefficients, params.inlier_m)]
+        if _count_rows(rows[inliers]) < params.min_rows:
             break
         for _ in range(params.refits):
             coefficients = _weighted_fit(xs[inliers], ys[inliers], weights[inliers])
-            refined = candidates[np.abs(ys[candidates] - np.polyval(coefficients, xs[candidates])) < params.inlier_m]
-            if np.unique(rows[refined]).size < params.min_rows:
+            refined = candidates[_near(candidate_x, candidate_y, coefficients, params.inlier_m)]
+            if _count_rows(rows[refined]) < params.min_rows:
                 break
             inliers = refined
         if params.extend:
@@ -97,12 +98,23 @@ def fit_borders(heat: HeatMap, params: FitParams | None = None) -> tuple[LaneBor
         coefficients = _weighted_fit(all_x, all_y, all_w)
         x_min, x_max = float(all_x.min()), float(all_x.max())
         # Everything this border explains is used up, trail included.
-        near = np.abs(ys - np.polyval(coefficients, xs)) < 2 * params.inlier_m
+        near = _near(xs, ys, coefficients, 2 * params.inlier_m)
         free &= ~(near & (xs >= x_min - heat.params.cell_x_m) & (xs <= x_max + heat.params.cell_x_m))
         border = _border(coefficients, x_min, x_max, all_x, heat, params)
         if border is not None and stands_out(heat, hot, coefficients, x_min, x_max, params):
             borders.append(border)
     return tuple(sorted(borders, key=lambda b: -(b.c0_m + b.c1 * b.x_min_m + b.c2_per_m * b.x_min_m**2)))
+
+
+def _near(xs: np.ndarray, ys: np.ndarray, coefficients: np.ndarray, distance: float) -> np.ndarray:
+    """Whether each point is within ``distance`` (in y) of the parabola (Horner, as np.polyval)."""
+    c2, c1, c0 = coefficients
+    return np.abs(ys - ((c2 * xs + c1) * xs + c0)) < distance
+
+
+def _count_rows(rows: np.ndarray) -> int:
+    """How many distinct cell rows (non-negative) there are."""
+    return int(np.count_nonzero(np.bincount(rows)))
 
 
 def ransac(
@@ -114,22 +126,22 @@ def ransac(
         return None
     # Most random triples of a noisy map make wild parabolas; draw many, solve them all (cheap),
     # and score only the first ``iterations`` plausible ones (scoring is the costly part).
-    triples = rng.integers(0, xs.size, size=(params.iterations * params.draws_per_iteration, 3))
-    tx, ty = xs[triples], ys[triples]
-    spread = tx.max(axis=1) - tx.min(axis=1)
-    distinct = (tx[:, 0] != tx[:, 1]) & (tx[:, 1] != tx[:, 2]) & (tx[:, 0] != tx[:, 2])
-    keep = distinct & (spread >= params.min_spread_m)
+    triples = rng.integers(0, xs.size, size=(params.iterations * params.draws_per_iteration, 3)).T
+    (xa, xb, xc), (ya, yb, yc) = xs[triples], ys[triples]  # one contiguous row per vertex: fast ufuncs
+    spread = np.maximum(np.maximum(xa, xb), xc) - np.minimum(np.minimum(xa, xb), xc)
+    keep = (xa != xb) & (xb != xc) & (xa != xc) & (spread >= params.min_spread_m)
     if not keep.any():
         return None
-    tx, ty = tx[keep], ty[keep]
     # Exact parabola through the three points (divided differences), centred on x0.
     x0 = (params.fit_x_min_m + params.fit_x_max_m) / 2
-    (xa, xb, xc), (ya, yb, yc) = (tx - x0).T, ty.T
+    xa, xb, xc, ya, yb, yc = xa[keep] - x0, xb[keep] - x0, xc[keep] - x0, ya[keep], yb[keep], yc[keep]
     slope_ab, slope_ac = (yb - ya) / (xb - xa), (yc - ya) / (xc - xa)
     a = (slope_ac - slope_ab) / (xc - xb)
-    b = slope_ab - a * (xa + xb)
+    curved = np.abs(a) <= params.max_curvature  # c2 is a: the cheap test first, on every triple
+    a, xa, xb, ya = a[curved], xa[curved], xb[curved], ya[curved]
+    b = slope_ab[curved] - a * (xa + xb)
     coefficients = _uncentre(np.column_stack([a, b, ya - a * xa * xa - b * xa]), x0)
-    plausible = np.abs(coefficients[:, 0]) <= params.max_curvature
+    plausible = np.ones(len(coefficients), dtype=bool)
     for edge in (params.fit_x_min_m, params.fit_x_max_m):
         plausible &= np.abs(2 * coefficients[:, 0] * edge + coefficients[:, 1]) <= params.max_slope
     if not plausible.any():
@@ -187,9 +199,9 @@ def _follow(
 
 def _slope(rows: np.ndarray, columns: np.ndarray) -> float:
     """Columns per row of the points (least squares), 0 if they share one row."""
-    if np.ptp(rows) == 0:
-        return 0.0
-    return float(np.polyfit(rows, columns, 1)[0])
+    du = rows - rows.mean()
+    spread = float(du @ du)
+    return float(du @ (columns - columns.mean())) / spread if spread > 0 else 0.0
 
 
 def _weighted_fit(xs: np.ndarray, ys: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -202,7 +214,7 @@ def _weighted_fit(xs: np.ndarray, ys: np.ndarray, weights: np.ndarray) -> np.nda
     normal = weighted @ powers.T
     rhs = weighted @ ys
     c, b, a = np.linalg.solve(normal, rhs)
-    return _uncentre(np.array([[a, b, c]]), x0)[0]
+    return np.array([a, b - 2 * a * x0, c - b * x0 + a * x0 * x0])  # _uncentre of one
 
 
 def _uncentre(local: np.ndarray, x0: float) -> np.ndarray:

@@ -110,15 +110,21 @@ def pixel_scores(
 ) -> np.ndarray:
     """Per-pixel lane score 0..1 on the band ``image`` (grey uint8 rows ``top``...)."""
     left, right = pulse_indices(rig, top, top + image.shape[0], params.marking_width_m)
-    flat = image.ravel().astype(np.int16)
-    contrast = np.minimum(flat - flat[left], flat - flat[right]).reshape(image.shape).astype(np.float32)
-    span = params.full_contrast - params.min_contrast
-    score = np.clip((contrast - params.min_contrast) / span, 0.0, 1.0)
-    bright = image >= image.mean(axis=1, keepdims=True) + params.min_brightness
-    score[~bright] = 0.0
-    if not_ground is not None:
-        score[not_ground] = 0.0
-    return score
+    flat = image.ravel()
+    # Saturating uint8 differences: a pixel darker than a side scores 0 either way.
+    contrast = cv2.min(cv2.subtract(flat, flat.take(left)), cv2.subtract(flat, flat.take(right))).reshape(image.shape)
+    # Integer pixels: at least mean + min_brightness is at least its ceiling (int16: it may pass 255).
+    bright_from = np.ceil(image.mean(axis=1, keepdims=True) + params.min_brightness).astype(np.int16)
+    dim = image < bright_from
+    contrast[dim if not_ground is None else dim | not_ground] = 0
+    return cv2.LUT(contrast, _score_table(params.min_contrast, params.full_contrast))
+
+
+@lru_cache(maxsize=16)
+def _score_table(min_contrast: float, full_contrast: float) -> np.ndarray:
+    """float32 score of each uint8 contrast: 0 up to ``min_contrast``, rising to 1 at ``full_contrast``."""
+    contrast = np.arange(256, dtype=np.float32)
+    return np.clip((contrast - min_contrast) / (full_contrast - min_contrast), 0.0, 1.0)
 
 
 def heat_map(score: np.ndarray, rig: StereoRig, top: int, params: HeatParams) -> HeatMap:

@@ -2,7 +2,7 @@
 
 Stages (each timed in ``Stats.timings_s``):
 
-1. ``disparity``: semi-global matching on the rows of the 10-35 m band only;
+1. ``disparity``: block matching on the rows of the 10-35 m band only;
 2. ``reproject``: every matched pixel to VEHICLE x, y, z (the rig's Q matrix, then
    camera_to_vehicle);
 3. ``obstacle_points``: Kratos' Algorithm 1 (pairs of points nearly one above the other);
@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
-from modules.esvs.vision.band import Band, BandParams, band_rows, vehicle_points
+from modules.esvs.vision.band import Band, BandParams, band_disparity, band_rows, vehicle_points
 from modules.esvs.vision.clusters import ClusterParams, describe
-from modules.esvs.vision.disparity import REALTIME, MatcherParams, compute_disparity
+from modules.esvs.vision.disparity import REALTIME, MatcherParams
 from modules.esvs.vision.lane_fit import FitParams, fit_borders
 from modules.esvs.vision.lane_heat import HeatParams, heat_map, off_ground, pixel_scores
 from modules.esvs.vision.obstacle_points import ObstaclePointParams, obstacle_points
@@ -80,7 +80,7 @@ def process(
     start = clock()
 
     band_left = left[band.top : band.bottom]
-    disparity = compute_disparity(band_left, right[band.top : band.bottom], params.matcher)
+    disparity = band_disparity(left, right, band, params.matcher)
     timings["disparity"], start = clock() - start, clock()
 
     x, y, z = vehicle_points(disparity, rig, band.top)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from modules.esvs.geometry import RASCAL_RIG
-from modules.esvs.vision.band import BandParams, band_rows, vehicle_points
+from modules.esvs.vision.band import BandParams, band_disparity, band_rows, vehicle_points
 from modules.esvs.vision.disparity import REALTIME, MatcherParams, compute_disparity, fill_holes, matcher, texture
 from tests.modules.esvs.vision.scenes import Box, Scene, rendered
 
@@ -23,8 +23,10 @@ def band_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 
 
 def test_band_disparity_is_dense_and_accurate_within_range() -> None:
-    left, right, truth, _ = band_pair()
-    disparity = compute_disparity(left, right, REALTIME)
+    left, right, truth = rendered(SCENE)
+    band = band_rows(RASCAL_RIG, BandParams())
+    disparity = band_disparity(left, right, band, REALTIME)
+    truth = truth[band.top : band.bottom]
     # Pixels 8-40 m from the cameras, right of the columns no disparity can reach.
     fb = RASCAL_RIG.focal_px * RASCAL_RIG.baseline_m
     judged = (truth >= fb / 40) & (truth <= fb / 8)
@@ -34,6 +36,16 @@ def test_band_disparity_is_dense_and_accurate_within_range() -> None:
     error = np.abs(disparity[found] - truth[found])
     assert np.mean(error > 1.0) < 0.01
     assert np.median(error) < 0.15
+
+
+@pytest.mark.parametrize("params", [REALTIME, MatcherParams(block_size=7, texture_threshold=1.0)], ids=["bm", "3way"])
+def test_the_band_is_matched_to_its_edge_rows(params: MatcherParams) -> None:
+    left, right, _truth = rendered(SCENE)
+    band = band_rows(RASCAL_RIG, BandParams())
+    disparity = band_disparity(left, right, band, params)
+    assert disparity.shape == (band.rows, RASCAL_RIG.width_px)
+    # The block matcher leaves its input's edge rows unmatched: the band borrows image rows for them.
+    assert np.isfinite(disparity[-1]).mean() > 0.8  # ground 10 m ahead (the top rows are sky here)
 
 
 def test_the_texture_check_removes_the_featureless_sky() -> None:
@@ -89,3 +101,7 @@ def test_bad_input_and_parameters_are_refused() -> None:
         MatcherParams(block_size=4)
     with pytest.raises(ValueError, match="mode"):
         MatcherParams(mode="fast")
+    with pytest.raises(ValueError, match="at least 5"):
+        MatcherParams(mode="bm", block_size=3)
+    with pytest.raises(ValueError, match="pre_filter_cap"):
+        MatcherParams(pre_filter_cap=64)
