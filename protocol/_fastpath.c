@@ -9,6 +9,10 @@
  * ProtocolError. So C accepts a subset of what Python accepts, builds the same values, and words
  * no error but the replay guard's.
  *
+ * Fragment datagrams (flags bit 0x02) never take this path: locate() refuses them and the Bus
+ * sends them to the Python reassembler (protocol/framing.py), which checks each fragment's own
+ * tag. Fragments are rare (large messages only), so they need no C twin.
+ *
  * Layout (little-endian, SPEC.md is normative):
  *   magic "RB" | version u8 | flags u8 | type_id u16 | source_id u16 | key_id u16 |
  *   channel_len u8 | reserved u8 | seq u64 | t_meas_ns i64 | t_pub_ns i64 |

@@ -1,49 +1,71 @@
 """Sans-IO fragmentation and reassembly of messages larger than one datagram.
 
-Fragment datagram (little-endian; SPEC.md is normative)::
+Fragment datagram (little-endian; SPEC.md section 8 is normative)::
 
-    magic "RB" | version u8 | flags u8 (FRAGMENT) | source_id u16 | index u16 | count u16 |
-    reserved u16 | message_id u32 | total_len u32 | data
+    magic "RB" | version u8 | flags u8 (FRAGMENT, + SIGNED) | source_id u16 | index u16 |
+    count u16 | key_id u16 | message_id u32 | total_len u32 | data | tag (8 B, if SIGNED)
 
-Fragments are not authenticated one by one: the reassembled message carries the MAC and is
-verified as a whole. Because of that, everything here is bounded (per source and overall), so
-unauthenticated fragments can waste at most a fixed amount of memory.
+Each signed fragment carries its own keyed BLAKE2b-64 tag over header and data, checked before
+the fragment may take any reassembly state: a forger without the key can neither start, evict
+nor poison a partial message. The reassembled message still carries its own MAC and replay
+checks. The bounds (per source and overall) remain against key holders gone mad, and in the
+unsigned mode, where fragments carry no tag, as messages carry none.
 """
 
 from __future__ import annotations
 
+import secrets
 import struct
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
-from protocol.codec import FLAG_FRAGMENT, MAGIC, VERSION
+from protocol.auth import FRAGMENT_TAG_BYTES, Keyring
+from protocol.codec import FLAG_FRAGMENT, FLAG_SIGNED, MAGIC, VERSION
 from protocol.errors import ProtocolError, Reason
 
 FRAGMENT_HEADER = struct.Struct("<2sBBHHHHII")
 FRAGMENT_HEADER_BYTES = FRAGMENT_HEADER.size  # 20
+FRAGMENT_FLAGS = (FLAG_FRAGMENT, FLAG_FRAGMENT | FLAG_SIGNED)
 DEFAULT_MAX_DATAGRAM_BYTES = 1400
 
 
+def new_message_id() -> int:
+    """A message id nobody can predict, so none can be claimed before the sender uses it."""
+    return secrets.randbits(32)
+
+
 def fragment(
-    message: bytes, source_id: int, message_id: int, max_datagram: int = DEFAULT_MAX_DATAGRAM_BYTES
+    message: bytes,
+    source_id: int,
+    message_id: int,
+    max_datagram: int = DEFAULT_MAX_DATAGRAM_BYTES,
+    keyring: Keyring | None = None,
 ) -> list[bytes]:
-    """Split ``message`` into fragment datagrams of at most ``max_datagram`` bytes each.
+    """Split ``message`` into fragment datagrams of at most ``max_datagram`` bytes each, each
+    tagged with ``keyring``'s active key (unsigned without one).
 
     A message that fits in one datagram is returned unchanged, as the only element.
     """
     if len(message) <= max_datagram:
         return [message]
-    chunk = max_datagram - FRAGMENT_HEADER_BYTES
+    tag_bytes = FRAGMENT_TAG_BYTES if keyring is not None else 0
+    chunk = max_datagram - FRAGMENT_HEADER_BYTES - tag_bytes
+    if chunk < 1:
+        raise ValueError(f"a datagram of {max_datagram} B has no room for fragment data")
     count = -(-len(message) // chunk)
     if count > 0xFFFF:
         raise ValueError(f"message of {len(message)} B needs {count} fragments, over 65535")
-    total = len(message)
-    message_id &= 0xFFFFFFFF
-    return [
-        FRAGMENT_HEADER.pack(MAGIC, VERSION, FLAG_FRAGMENT, source_id, index, count, 0, message_id, total)
-        + message[index * chunk : (index + 1) * chunk]
+    flags, key_id = (FLAG_FRAGMENT | FLAG_SIGNED, keyring.active) if keyring is not None else (FLAG_FRAGMENT, 0)
+    head = (MAGIC, VERSION, flags, source_id)
+    tail = (count, key_id, message_id & 0xFFFFFFFF, len(message))
+    parts = [
+        FRAGMENT_HEADER.pack(*head, index, *tail) + message[index * chunk : (index + 1) * chunk]
         for index in range(count)
     ]
+    if keyring is not None:
+        parts = [part + keyring.sign_fragment(part) for part in parts]
+    return parts
 
 
 def is_fragment(datagram: bytes) -> bool:
@@ -68,97 +90,140 @@ class ReassemblyLimits:
     max_sources: int = 64
 
 
+class _Fragment(NamedTuple):
+    """One fragment that passed every check that needs no reassembly state."""
+
+    source_id: int
+    index: int
+    count: int
+    message_id: int
+    total_len: int
+    data: bytes
+
+
 class Reassembler:
     """Collects fragments into messages. Duplicates and reordering are fine; a message with a
-    lost fragment is dropped whole once ``timeout_ns`` has passed since its first fragment."""
+    lost fragment is dropped whole once ``timeout_ns`` has passed since its first fragment.
 
-    def __init__(self, limits: ReassemblyLimits | None = None) -> None:
+    ``keyring=None`` is the unsigned mode: fragments need no tag (a tag is stripped unverified).
+    With a keyring, each fragment's tag is verified before it touches any state.
+    """
+
+    def __init__(self, limits: ReassemblyLimits | None = None, keyring: Keyring | None = None) -> None:
         self.limits = limits or ReassemblyLimits()
+        self.keyring = keyring
         # source -> message_id -> partial; both ordered oldest first for eviction.
         self._sources: OrderedDict[int, OrderedDict[int, _Partial]] = OrderedDict()
         self._bytes: dict[int, int] = {}
+        # Every partial by arrival of its first fragment, which is deadline order: expiry pops
+        # from the front and costs nothing per source or partial that has not expired.
+        self._ages: OrderedDict[tuple[int, int], _Partial] = OrderedDict()
         self.dropped: list[ProtocolError] = []
 
     def feed(self, datagram: bytes, now_ns: int) -> bytes | None:
         """Add one fragment; return the whole message when it completes, else None.
 
-        Raises ProtocolError for a malformed fragment. Messages dropped for timeout or memory
-        bounds are appended to :attr:`dropped` for the caller to count.
+        Raises ProtocolError for a malformed or unauthentic fragment, before it changes
+        anything. Messages dropped for timeout or memory bounds are appended to
+        :attr:`dropped` for the caller to count.
         """
-        if len(datagram) <= FRAGMENT_HEADER_BYTES:
+        frag = self._check(datagram)
+        self.expire(now_ns)
+        source_id, message_id, total_len = frag.source_id, frag.message_id, frag.total_len
+        partials = self._partials_of(source_id)
+        partial = partials.get(message_id)
+        if partial is None:
+            partial = _Partial(total_len, frag.count, now_ns)
+            partials[message_id] = partial
+            self._ages[(source_id, message_id)] = partial
+            self._enforce_source_bounds(source_id, partials, total_len)
+        elif partial.total_len != total_len or partial.count != frag.count:
+            raise ProtocolError(Reason.BAD_FRAGMENT, "fragment disagrees with earlier ones", source_id)
+        if frag.index in partial.parts:
+            return None  # duplicate
+        if partial.received + len(frag.data) > total_len:
+            self._discard(source_id, message_id)
+            raise ProtocolError(Reason.BAD_FRAGMENT, f"fragments exceed the declared {total_len} B", source_id)
+        partial.parts[frag.index] = frag.data
+        partial.received += len(frag.data)
+        if len(partial.parts) < partial.count:
+            return None
+        self._discard(source_id, message_id)
+        if partial.received != total_len:
+            raise ProtocolError(Reason.BAD_FRAGMENT, f"reassembled {partial.received} B of {total_len}", source_id)
+        return b"".join(partial.parts[i] for i in range(partial.count))
+
+    def _check(self, datagram: bytes) -> _Fragment:
+        """Framing, then bounds, then the tag: everything decidable from this datagram alone."""
+        size = len(datagram)
+        if size <= FRAGMENT_HEADER_BYTES:
             raise ProtocolError(Reason.TRUNCATED, "fragment shorter than its header")
-        magic, version, flags, source_id, index, count, _reserved, message_id, total_len = FRAGMENT_HEADER.unpack_from(
+        magic, version, flags, source_id, index, count, key_id, message_id, total_len = FRAGMENT_HEADER.unpack_from(
             datagram
         )
         if magic != MAGIC:
             raise ProtocolError(Reason.BAD_MAGIC)
         if version != VERSION:
             raise ProtocolError(Reason.BAD_VERSION, f"version {version}", source_id)
-        if flags != FLAG_FRAGMENT or count < 2 or index >= count:
-            raise ProtocolError(Reason.BAD_FRAGMENT, f"index {index} of {count}", source_id)
+        if flags not in FRAGMENT_FLAGS or count < 2 or index >= count:
+            raise ProtocolError(Reason.BAD_FRAGMENT, f"flags {flags:#x}, index {index} of {count}", source_id)
         # A message over the per-source bound could never be held within it (eviction keeps at
         # least the newest partial), so it is refused like one over the message limit.
         if total_len > min(self.limits.max_message_bytes, self.limits.max_bytes_per_source):
             raise ProtocolError(Reason.OVERSIZED, f"fragmented message of {total_len} B", source_id)
         if count > total_len:
             raise ProtocolError(Reason.BAD_FRAGMENT, f"{count} fragments for {total_len} B", source_id)
-        data = datagram[FRAGMENT_HEADER_BYTES:]
+        end = self._authenticate(datagram, flags, key_id, source_id)
+        return _Fragment(source_id, index, count, message_id, total_len, datagram[FRAGMENT_HEADER_BYTES:end])
 
-        self.expire(now_ns)
-        partials = self._partials_of(source_id)
-        partial = partials.get(message_id)
-        if partial is None:
-            partial = _Partial(total_len, count, now_ns)
-            partials[message_id] = partial
-            self._enforce_source_bounds(source_id, partials, total_len)
-        elif partial.total_len != total_len or partial.count != count:
-            raise ProtocolError(Reason.BAD_FRAGMENT, "fragment disagrees with earlier ones", source_id)
-        if index in partial.parts:
-            return None  # duplicate
-        if partial.received + len(data) > total_len:
-            self._discard(source_id, message_id)
-            raise ProtocolError(Reason.BAD_FRAGMENT, f"fragments exceed the declared {total_len} B", source_id)
-        partial.parts[index] = data
-        partial.received += len(data)
-        if len(partial.parts) < count:
-            return None
-        self._discard(source_id, message_id)
-        if partial.received != total_len:
-            raise ProtocolError(Reason.BAD_FRAGMENT, f"reassembled {partial.received} B of {total_len}", source_id)
-        return b"".join(partial.parts[i] for i in range(count))
+    def _authenticate(self, datagram: bytes, flags: int, key_id: int, source_id: int) -> int:
+        """Verify the tag as the mode asks; return where the fragment's data ends."""
+        size = len(datagram)
+        if not flags & FLAG_SIGNED:
+            if self.keyring is not None:
+                raise ProtocolError(Reason.UNSIGNED, "fragment", source_id)
+            return size
+        end = size - FRAGMENT_TAG_BYTES
+        if end <= FRAGMENT_HEADER_BYTES:
+            raise ProtocolError(Reason.TRUNCATED, "fragment without room for its tag", source_id)
+        if self.keyring is not None:
+            if key_id not in self.keyring.keys:
+                raise ProtocolError(Reason.UNKNOWN_KEY, f"fragment key id {key_id}", source_id)
+            view = memoryview(datagram)
+            if not self.keyring.verify_fragment(key_id, view[:end], view[end:]):
+                raise ProtocolError(Reason.BAD_MAC, "fragment", source_id)
+        return end
 
     def _discard(self, source_id: int, message_id: int) -> None:
-        partial = self._sources[source_id].pop(message_id)
+        partials = self._sources[source_id]
+        partial = partials.pop(message_id)
+        del self._ages[(source_id, message_id)]
         self._bytes[source_id] -= partial.total_len
+        if not partials:
+            del self._sources[source_id]
+            del self._bytes[source_id]
 
     def expire(self, now_ns: int) -> None:
         """Drop partial messages older than the timeout (recorded in :attr:`dropped`)."""
         deadline = now_ns - self.limits.timeout_ns
-        for source_id in list(self._sources):
-            partials = self._sources[source_id]
-            while partials:
-                message_id, oldest = next(iter(partials.items()))
-                if oldest.first_ns > deadline:
-                    break
-                del partials[message_id]
-                self._bytes[source_id] -= oldest.total_len
-                self.dropped.append(ProtocolError(Reason.FRAGMENT_TIMEOUT, f"message {message_id}", source_id))
-            if not partials:
-                del self._sources[source_id]
-                del self._bytes[source_id]
+        ages = self._ages
+        while ages:
+            (source_id, message_id), oldest = next(iter(ages.items()))
+            if oldest.first_ns > deadline:
+                break
+            self._discard(source_id, message_id)
+            self.dropped.append(ProtocolError(Reason.FRAGMENT_TIMEOUT, f"message {message_id}", source_id))
 
     def pending(self) -> int:
-        return sum(len(partials) for partials in self._sources.values())
+        return len(self._ages)
 
     def _partials_of(self, source_id: int) -> OrderedDict[int, _Partial]:
         partials = self._sources.get(source_id)
         if partials is None:
             if len(self._sources) >= self.limits.max_sources:
-                evicted_source, evicted = self._sources.popitem(last=False)
-                del self._bytes[evicted_source]
-                self.dropped.extend(
-                    ProtocolError(Reason.FRAGMENT_EVICTED, f"message {mid}", evicted_source) for mid in evicted
-                )
+                evicted_source = next(iter(self._sources))
+                for message_id in list(self._sources[evicted_source]):
+                    self._evict(evicted_source, message_id)
             partials = self._sources[source_id] = OrderedDict()
             self._bytes[source_id] = 0
         else:
@@ -172,6 +237,8 @@ class Reassembler:
         while len(partials) > 1 and (
             len(partials) > limits.max_partials_per_source or self._bytes[source_id] > limits.max_bytes_per_source
         ):
-            message_id, oldest = partials.popitem(last=False)
-            self._bytes[source_id] -= oldest.total_len
-            self.dropped.append(ProtocolError(Reason.FRAGMENT_EVICTED, f"message {message_id}", source_id))
+            self._evict(source_id, next(iter(partials)))
+
+    def _evict(self, source_id: int, message_id: int) -> None:
+        self._discard(source_id, message_id)
+        self.dropped.append(ProtocolError(Reason.FRAGMENT_EVICTED, f"message {message_id}", source_id))

@@ -8,7 +8,6 @@ datagram; the module never sees it.
 
 from __future__ import annotations
 
-import itertools
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -20,7 +19,7 @@ from protocol.auth import Keyring, default_keyring
 from protocol.codec import FLAG_FRAGMENT, Codec, Envelope, Opened, check_channel, unpack_body
 from protocol.errors import ProtocolError, Reason
 from protocol.fastpath import native
-from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, Reassembler, ReassemblyLimits, fragment
+from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, Reassembler, ReassemblyLimits, fragment, new_message_id
 from protocol.replay import ReplayGuard, ReplayLimits
 from protocol.schema import info_for_class, info_for_id
 from protocol.transport import Transport, open_transport
@@ -114,7 +113,7 @@ class Bus:
         reassembly_limits = reassembly_limits or ReassemblyLimits()
         self.codec = Codec(keyring, reassembly_limits.max_message_bytes)
         self.replay = ReplayGuard(replay_limits)
-        self.reassembler = Reassembler(reassembly_limits)
+        self.reassembler = Reassembler(reassembly_limits, keyring)
         self.stats: dict[str, ChannelStats] = {}
         self.rejects: Counter[tuple[int | None, str]] = Counter()
         self._subs: dict[str, _Route] = {}
@@ -124,7 +123,6 @@ class Bus:
         # Start sequences at wall-clock microseconds so a restarted publisher continues above
         # its previous life and receivers' replay windows accept it (see protocol.replay).
         self._seq_base = time.time_ns() // 1000
-        self._message_ids = itertools.count(self._seq_base & 0xFFFFFFFF)
         self._check_freshness = clock.synced
         # The C twin of _accept (protocol/_fastpath.c), for every plain datagram; None: Python only.
         self._receiver = (
@@ -184,7 +182,8 @@ class Bus:
         if len(data) <= self.max_datagram_bytes:
             self.transport.send(channel, data)
         else:
-            for part in fragment(data, self.source_id, next(self._message_ids), self.max_datagram_bytes):
+            parts = fragment(data, self.source_id, new_message_id(), self.max_datagram_bytes, self.codec.keyring)
+            for part in parts:
                 self.transport.send(channel, part)
 
     # -- subscribing --------------------------------------------------------------------------
@@ -231,6 +230,8 @@ class Bus:
         datagrams, so a flood cannot starve the caller's periodic work). Returns datagrams seen."""
         handled = self.transport.receive(self._on_datagram, timeout_s, budget)
         self._check_freshness = self.clock.synced
+        if self.reassembler.pending():  # also when no fragment comes to notice the timeout
+            self.reassembler.expire(self.clock.local_ns())
         if self.reassembler.dropped:
             for error in self.reassembler.dropped:
                 self._count_reject(error)

@@ -147,8 +147,10 @@ def test_rejects_are_counted_per_source_and_reason_and_never_delivered(net: Net)
 
 def test_a_spoofer_with_the_wrong_key_never_gets_a_message_through(net: Net) -> None:
     """Whatever a spoofer sends (any type, any declared channel, fragmented or not, even under the
-    victim's source id and key id), no handler or latest-value entry ever sees it."""
+    victim's source id and key id), no handler or latest-value entry ever sees it: every datagram,
+    each fragment included, is rejected on its own tag."""
     sub = net.bus(SUBSCRIBER)
+    tap = net.tap()
     inbox = Inbox()
     latest = {}
     for name in channels.CHANNEL_TYPES:
@@ -160,12 +162,13 @@ def test_a_spoofer_with_the_wrong_key_never_gets_a_message_through(net: Net) -> 
         for spoofer in spoofers:
             for sample in SAMPLES + BIG_SAMPLES:
                 spoofer.publish(CHANNEL_OF[type(sample)], sample)
-                sent += 1
+        sent += len(drain(tap))
         net.clock.advance(1_000_000)
         sub.poll()
     assert inbox.items == []
     assert all(entry.read(net.clock.now_ns()).validity is Validity.NEVER for entry in latest.values())
     assert sub.rejects == Counter({(PUBLISHER, "bad_mac"): sent // 2, (PUBLISHER, "unknown_key"): sent // 2})
+    assert sub.reassembler.pending() == 0
 
 
 def test_a_replayed_genuine_datagram_is_rejected(net: Net) -> None:

@@ -26,6 +26,7 @@ import pytest
 from protocol import channels, codec, fastpath
 from protocol.codec import FLAG_SIGNED, Codec, Opened
 from protocol.errors import ProtocolError
+from protocol.framing import fragment
 from protocol.replay import PythonReplayGuard, ReplayGuard, ReplayLimits
 from protocol.schema import _compile_decoder, info_for_class, registered
 from protocol.transport import MemTransport
@@ -119,6 +120,22 @@ def test_open_agrees_with_python_on_mutated_datagrams(signed: bool) -> None:
                 assert type(fast) is Opened and type(fast.body) is memoryview
                 counts["same"] += 1
     assert counts["same"] > 2_000 and counts["left to python"] > 2_000, counts
+
+
+@needs_native
+@pytest.mark.parametrize("signed", [True, False], ids=["signed", "unsigned"])
+def test_fragments_are_always_left_to_python(signed: bool) -> None:
+    """C has no reassembly: every fragment, tagged or not, authentic or forged, comes back None
+    from open() and from a Receiver, so the Python reassembler and its tag check see it."""
+    keys = keyring() if signed else None
+    opener = Codec(keys)
+    data = opener.encode(b"PATH", BIG_SAMPLES[1], 7, 1, T0_NS, T0_NS)
+    receiver = native.Receiver(opener.verifying_macs, opener.max_message_bytes, {}, ReplayGuard(ReplayLimits()), tuple)
+    for tagged_with in (keys, keyring(), None):
+        for part in fragment(data, 7, 1, keyring=tagged_with):
+            assert native.open(part, Opened, opener.verifying_macs, opener.max_message_bytes) is None
+            assert receiver.accept(part, T0_NS, T0_NS, True) is None
+            assert isinstance(_python_open(opener, part), ProtocolError)
 
 
 # -- typed decode ----------------------------------------------------------------------------

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
 import random
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol.auth import FRAGMENT_TAG_BYTES, Keyring
 from protocol.codec import FLAG_FRAGMENT, FLAG_SIGNED, MAGIC, VERSION
 from protocol.errors import ProtocolError, Reason
 from protocol.framing import (
@@ -18,7 +20,9 @@ from protocol.framing import (
     ReassemblyLimits,
     fragment,
     is_fragment,
+    new_message_id,
 )
+from tests.protocol.wire_samples import WRONG_KEY, keyring
 
 T0 = 1_000_000_000_000
 SOURCE = 7
@@ -318,7 +322,7 @@ def test_fragments_short_of_the_declared_total_are_bad_fragment() -> None:
         (2, 2, 100, FLAG_FRAGMENT),  # index out of range
         (65535, 3, 100, FLAG_FRAGMENT),
         (0, 5, 4, FLAG_FRAGMENT),  # more fragments than bytes
-        (0, 2, 100, FLAG_FRAGMENT | FLAG_SIGNED),  # fragments carry no other flag
+        (0, 2, 100, FLAG_FRAGMENT | 0x04),  # fragments carry no flag but SIGNED
         (0, 2, 100, 0x06),
     ],
 )
@@ -340,3 +344,66 @@ def test_malformed_fragment_framing_is_rejected_with_its_reason() -> None:
     assert reason_of(reassembler, header(0, 2, 100, version=2) + b"x") is Reason.BAD_VERSION
     assert reason_of(reassembler, header(0, 2, 10_001) + b"x") is Reason.OVERSIZED
     assert reassembler.pending() == 0
+
+
+# -- authenticated fragments -------------------------------------------------------------------
+
+
+def test_signed_fragments_carry_a_tag_and_reassemble_exactly() -> None:
+    """With a keyring every fragment has flags FRAGMENT|SIGNED, the active key id, and an 8-byte
+    tag after its data, still within max_datagram; a keyed reassembler rebuilds the message."""
+    keys = keyring(1, 2, active=2)
+    message = payload(10_000)
+    datagrams = fragment(message, SOURCE, 3, keyring=keys)
+    chunk = DEFAULT_MAX_DATAGRAM_BYTES - FRAGMENT_HEADER_BYTES - FRAGMENT_TAG_BYTES
+    assert len(datagrams) == -(-len(message) // chunk)
+    for datagram in datagrams:
+        fields = FRAGMENT_HEADER.unpack_from(datagram)
+        assert fields[2] == FLAG_FRAGMENT | FLAG_SIGNED and fields[6] == 2
+        assert len(datagram) <= DEFAULT_MAX_DATAGRAM_BYTES
+    assert feed_all(Reassembler(keyring=keyring(1, 2)), datagrams[::-1]) == [message]
+
+
+def test_any_change_to_a_signed_fragment_is_bad_mac_and_changes_nothing() -> None:
+    """Flipping any bit of header (after the flags), data or tag fails the tag, before the
+    fragment touches the partial message it names; the genuine message still completes."""
+    keys = keyring()
+    message = payload(5000)
+    first, *rest = fragment(message, SOURCE, 9, keyring=keys)
+    reassembler = Reassembler(keyring=keys)
+    assert reassembler.feed(first, T0) is None
+    for position in [4, 6, 8, 10, 12, 16, FRAGMENT_HEADER_BYTES, len(rest[0]) - 1]:
+        for bit in (0x01, 0x80):
+            forged = bytearray(rest[0])
+            forged[position] ^= bit
+            assert reason_of(reassembler, bytes(forged)) in (Reason.BAD_MAC, Reason.UNKNOWN_KEY, Reason.BAD_FRAGMENT)
+    assert reassembler.pending() == 1
+    assert feed_all(reassembler, rest) == [message]
+
+
+def test_a_signed_receiver_refuses_unsigned_wrong_key_and_unknown_key_fragments() -> None:
+    """Untagged fragments are UNSIGNED, tags under another key BAD_MAC, an unlisted key id
+    UNKNOWN_KEY, a fragment too short for its tag TRUNCATED; none is held."""
+    reassembler = Reassembler(keyring=keyring())
+    message = payload(3000)
+    assert reason_of(reassembler, fragment(message, SOURCE, 1)[0]) is Reason.UNSIGNED
+    wrong = Keyring({1: WRONG_KEY}, 1)
+    assert reason_of(reassembler, fragment(message, SOURCE, 1, keyring=wrong)[0]) is Reason.BAD_MAC
+    assert reason_of(reassembler, fragment(message, SOURCE, 1, keyring=keyring(7))[0]) is Reason.UNKNOWN_KEY
+    short = header(0, 2, 100, flags=FLAG_FRAGMENT | FLAG_SIGNED) + b"x" * FRAGMENT_TAG_BYTES
+    assert reason_of(reassembler, short) is Reason.TRUNCATED
+    assert reassembler.pending() == 0
+
+
+def test_an_unsigned_receiver_strips_fragment_tags_unverified() -> None:
+    """The unsigned mode takes tagged fragments as it takes signed messages: tag stripped."""
+    message = payload(4000)
+    assert feed_all(Reassembler(), fragment(message, SOURCE, 1, keyring=keyring())) == [message]
+
+
+def test_message_ids_are_random() -> None:
+    """Message ids cannot be predicted from earlier ones: 200 draws (a repeat has odds of 5 in a
+    million), no repeats, no common step."""
+    ids = [new_message_id() for _ in range(200)]
+    assert len(set(ids)) == 200 and all(0 <= i < 2**32 for i in ids)
+    assert len({b - a for a, b in itertools.pairwise(ids)}) > 190

@@ -242,7 +242,7 @@ class Traffic:
         if len(data) <= 1400:
             return [data]
         self.message_id += 1
-        return fragment(data, self.sender, self.message_id)
+        return fragment(data, self.sender, self.message_id, keyring=self.keys)
 
     def replayed(self) -> list[bytes]:
         recordings = self.archive if self.archive and self.rng.random() < 0.3 else self.history
@@ -288,6 +288,7 @@ class Traffic:
                 MAGIC + bytes([VERSION, FLAG_SIGNED]),
                 MAGIC + bytes([VERSION, 0]),
                 MAGIC + bytes([VERSION, FLAG_FRAGMENT]),
+                MAGIC + bytes([VERSION, FLAG_FRAGMENT | FLAG_SIGNED]),
             ]
         )
         return [prefix + self.rng.randbytes(self.rng.choice((0, 1, 3, 19, 20, 35, 36, 37, self.rng.randrange(1500))))]
@@ -302,7 +303,7 @@ class Traffic:
         self.message_id += 1
         if self.rng.random() < 0.3:  # mutate the whole message, then fragment it
             data = self.flip_bits(data, 1)
-        parts = fragment(data, self.sender, self.message_id, self.rng.choice((1400, 1400, 1000, 600)))
+        parts = fragment(data, self.sender, self.message_id, self.rng.choice((1400, 1400, 1000, 600)), self.keys)
         if len(parts) == 1:
             return parts
         for _ in range(self.rng.randint(0, 3)):
@@ -352,7 +353,7 @@ class Traffic:
         if len(data) <= 1400:
             return [data]
         self.message_id += 1
-        return fragment(data, self.sender, self.message_id)
+        return fragment(data, self.sender, self.message_id, keyring=self.keys)
 
     def mutated_body(self) -> list[bytes]:
         """A genuine message whose body bytes are mutated, then sealed again."""
@@ -471,7 +472,7 @@ class SansIoReceiver:
 
     def __init__(self, keys: Keyring | None) -> None:
         self.codec = Codec(keys)
-        self.reassembler = Reassembler()
+        self.reassembler = Reassembler(keyring=keys)
         self.outcomes: dict[str, int] = {}
 
     def receive(self, datagram: bytes, now_ns: int) -> None:
@@ -619,13 +620,16 @@ MSGPACK_VALUES = st.recursive(
     lambda inner: st.lists(inner, max_size=8) | st.dictionaries(st.text(max_size=5), inner, max_size=4),
     max_leaves=25,
 )
-PREFIXES = [b"", *(MAGIC + bytes([VERSION, flags]) for flags in (0, FLAG_SIGNED, FLAG_FRAGMENT))]
+PREFIXES = [
+    b"",
+    *(MAGIC + bytes([VERSION, flags]) for flags in (0, FLAG_SIGNED, FLAG_FRAGMENT, FLAG_FRAGMENT | FLAG_SIGNED)),
+]
 
 
 def _receive_everywhere(datagram: bytes) -> None:
     """Both codecs and a reassembler: only ProtocolError may come out; decoded messages are well formed."""
     for keys in (keyring(), None):
-        reassembler = Reassembler()
+        reassembler = Reassembler(keyring=keys)
         try:
             if is_fragment(datagram):
                 datagram = reassembler.feed(datagram, T0_NS) or b""
@@ -673,13 +677,13 @@ def test_edited_genuine_messages_and_fragments_only_raise_protocol_error(
     raises at most ProtocolError in both modes."""
     for keys in (keyring(), None):
         data = Codec(keys).encode(CHANNEL_OF[type(sample)].encode(), sample, SENDER, 1, T0_NS, T0_NS)
-        parts = fragment(data, SENDER, 1, 600) if fragmented else [data]
+        parts = fragment(data, SENDER, 1, 600, keys) if fragmented else [data]
         target = edits[0][0] % len(parts)
         buf = bytearray(parts[target])
         for offset, value in edits:
             buf[offset % len(buf)] = value
         parts[target] = bytes(buf[: None if cut is None else cut % (len(buf) + 1)])
-        reassembler = Reassembler()
+        reassembler = Reassembler(keyring=keys)
         for part in parts:
             try:
                 whole = reassembler.feed(part, T0_NS) if is_fragment(part) else part
@@ -696,7 +700,7 @@ def test_headers_of_every_field_value_class_are_handled() -> None:
     base_body = msgpack.packb([1.0, 2.0])
     for keys in (keyring(), None):
         data = seal(base_body, keys=keys, channel=b"WHEEL_SPEED", type_id=12)
-        frag = fragment(data + b"\x00" * 1500, SENDER, 1)[0]
+        frag = fragment(data + b"\x00" * 1500, SENDER, 1, keyring=keys)[0]
         for template, fields in ((data, MESSAGE_FIELDS), (frag, FRAGMENT_FIELDS)):
             for offset, fmt in fields:
                 if fmt == "2s":

@@ -48,6 +48,7 @@ TP_VERSION = 1
 TP_SIGNED = 0x01
 TP_FRAGMENT = 0x02
 TP_TAG_BYTES = 16
+TP_FRAGMENT_TAG_BYTES = 8
 TP_MAX_MESSAGE = 256 * 1024
 TP_MAX_DATAGRAM = 1400
 TP_CHANNEL = re.compile(r"[A-Za-z0-9_./-]{1,64}")
@@ -182,6 +183,10 @@ def tp_load_keys(path: Path) -> tuple[dict[int, bytes], int]:
 
 def tp_mac(key: bytes, signed_part: bytes) -> bytes:
     return hashlib.blake2b(signed_part, key=key, digest_size=TP_TAG_BYTES).digest()
+
+
+def tp_fragment_mac(key: bytes, signed_part: bytes) -> bytes:
+    return hashlib.blake2b(signed_part, key=key, digest_size=TP_FRAGMENT_TAG_BYTES).digest()
 
 
 # -- messages -------------------------------------------------------------------------------------
@@ -333,33 +338,68 @@ def tp_is_fragment(datagram: bytes) -> bool:
     return len(datagram) >= 4 and datagram[3] & TP_FRAGMENT != 0
 
 
-def tp_fragment(message: bytes, source_id: int, message_id: int, max_datagram: int = TP_MAX_DATAGRAM) -> list[bytes]:
+def tp_fragment(
+    message: bytes,
+    source_id: int,
+    message_id: int,
+    key: bytes | None,
+    key_id: int = 0,
+    max_datagram: int = TP_MAX_DATAGRAM,
+) -> list[bytes]:
+    """Fragments of ``message``, each tagged with ``key`` (``None``: unsigned deployment)."""
     if len(message) <= max_datagram:
         return [message]
-    chunk = max_datagram - TP_FRAGMENT_HEADER.size
+    tag_bytes = 0 if key is None else TP_FRAGMENT_TAG_BYTES
+    flags = TP_FRAGMENT if key is None else TP_FRAGMENT | TP_SIGNED
+    chunk = max_datagram - TP_FRAGMENT_HEADER.size - tag_bytes
     count = -(-len(message) // chunk)
-    return [
-        TP_FRAGMENT_HEADER.pack(TP_MAGIC, TP_VERSION, TP_FRAGMENT, source_id, i, count, 0, message_id, len(message))
-        + message[i * chunk : (i + 1) * chunk]
-        for i in range(count)
-    ]
+    parts = []
+    for i in range(count):
+        header = TP_FRAGMENT_HEADER.pack(
+            TP_MAGIC, TP_VERSION, flags, source_id, i, count, key_id, message_id, len(message)
+        )
+        part = header + message[i * chunk : (i + 1) * chunk]
+        parts.append(part if key is None else part + tp_fragment_mac(key, part))
+    return parts
 
 
-def tp_reassemble(datagrams: list[bytes]) -> list[bytes]:
-    """Whole messages from a capture: unfragmented datagrams as they are, fragments joined per
-    (source_id, message_id) in index order once every index is present (duplicates ignored)."""
+def tp_fragment_data(datagram: bytes, keys: dict[int, bytes] | None) -> bytes:
+    """The data of one fragment whose flags and tag SPEC section 8 accepts; TpError otherwise."""
+    _magic, _version, flags, _source, _index, _count, key_id, _mid, _total = TP_FRAGMENT_HEADER.unpack_from(datagram)
+    if flags == TP_FRAGMENT:
+        if keys is not None:
+            raise TpError("unsigned", "fragment")
+        return datagram[TP_FRAGMENT_HEADER.size :]
+    if flags != TP_FRAGMENT | TP_SIGNED:
+        raise TpError("bad_fragment", f"flags {flags:#x}")
+    end = len(datagram) - TP_FRAGMENT_TAG_BYTES
+    if end <= TP_FRAGMENT_HEADER.size:
+        raise TpError("truncated")
+    if keys is not None:
+        if key_id not in keys:
+            raise TpError("unknown_key")
+        if not hmac.compare_digest(tp_fragment_mac(keys[key_id], datagram[:end]), datagram[end:]):
+            raise TpError("bad_mac", "fragment")
+    return datagram[TP_FRAGMENT_HEADER.size : end]
+
+
+def tp_reassemble(datagrams: list[bytes], keys: dict[int, bytes] | None) -> list[bytes]:
+    """Whole messages from a capture: unfragmented datagrams as they are, authentic fragments
+    joined per (source_id, message_id) in index order once every index is present (duplicates
+    ignored)."""
     out: list[bytes] = []
     partial: dict[tuple[int, int], dict[int, bytes]] = {}
     for datagram in datagrams:
         if not tp_is_fragment(datagram):
             out.append(datagram)
             continue
-        magic, version, flags, source_id, index, count, _reserved, message_id, total_len = (
+        magic, version, _flags, source_id, index, count, _key_id, message_id, total_len = (
             TP_FRAGMENT_HEADER.unpack_from(datagram)
         )
-        assert (magic, version, flags) == (TP_MAGIC, TP_VERSION, TP_FRAGMENT) and count >= 2 and index < count
+        assert (magic, version) == (TP_MAGIC, TP_VERSION) and count >= 2 and index < count
+        data = tp_fragment_data(datagram, keys)
         parts = partial.setdefault((source_id, message_id), {})
-        parts.setdefault(index, datagram[TP_FRAGMENT_HEADER.size :])
+        parts.setdefault(index, data)
         if len(parts) == count:
             whole = b"".join(parts[i] for i in range(count))
             assert len(whole) == total_len
@@ -690,7 +730,8 @@ def test_third_party_decodes_captured_traffic(capture: Capture, schema: TpSchema
     assert all(len(d) <= TP_MAX_DATAGRAM for d in datagrams)
     fragments = [d for d in datagrams if tp_is_fragment(d)]
     assert len(fragments) >= 2, "the capture should include a fragmented message"
-    messages = tp_reassemble(datagrams)
+    assert all(TP_FRAGMENT_HEADER.unpack_from(d)[2] == TP_FRAGMENT | TP_SIGNED for d in fragments)
+    messages = tp_reassemble(datagrams, keys)
     assert len(messages) == len(capture.expected)
     decoded = {}
     for data in messages:
@@ -710,7 +751,8 @@ def test_third_party_decodes_captured_traffic(capture: Capture, schema: TpSchema
 
 def test_third_party_rejects_tampering(capture: Capture, schema: TpSchema) -> None:
     keys, _ = tp_load_keys(capture.directory / "bus.key")
-    data = tp_reassemble(_read_capture(capture.directory))[0]
+    datagrams = _read_capture(capture.directory)
+    data = tp_reassemble(datagrams, keys)[0]
     for position in (0, 5, 12, TP_HEADER.size + 2, len(data) - 20, len(data) - 1):
         forged = bytearray(data)
         forged[position] ^= 0x40
@@ -719,6 +761,12 @@ def test_third_party_rejects_tampering(capture: Capture, schema: TpSchema) -> No
         assert error.value.reason in ("bad_magic", "bad_mac")
     with pytest.raises(TpError, match="unknown_key"):
         tp_open(data, {1: bytes(32)})
+    fragment = next(d for d in datagrams if tp_is_fragment(d))
+    for position in (4, 6, 12, 16, TP_FRAGMENT_HEADER.size + 3, len(fragment) - 1):
+        forged = bytearray(fragment)
+        forged[position] ^= 0x01
+        with pytest.raises(TpError, match="bad_mac"):
+            tp_fragment_data(bytes(forged), keys)
 
 
 def _project_opens(data: bytes, key_file: Path) -> tuple[Any, Any]:
@@ -797,6 +845,7 @@ def test_project_applies_the_evolution_rules_to_forged_bodies(capture: Capture, 
 
 
 def test_project_reassembles_a_forged_fragmented_message(capture: Capture, schema: TpSchema) -> None:
+    from protocol.auth import load_keyring
     from protocol.framing import Reassembler
     from protocol.messages import ObstacleList
 
@@ -826,10 +875,10 @@ def test_project_reassembles_a_forged_fragmented_message(capture: Capture, schem
         key=keys[active],
         key_id=active,
     )
-    parts = tp_fragment(message, 31337, 0xDEADBEEF)
+    parts = tp_fragment(message, 31337, 0xDEADBEEF, keys[active], active)
     assert len(parts) >= 4 and all(len(p) <= TP_MAX_DATAGRAM for p in parts)
     shuffled = [*parts[:0:-1], parts[2], parts[0]]  # reversed, with a duplicate before completion
-    reassembler = Reassembler()
+    reassembler = Reassembler(keyring=load_keyring(capture.directory / "bus.key"))
     results = [reassembler.feed(part, now_ns=1_000) for part in shuffled]
     whole = [r for r in results if r is not None]
     assert len(whole) == 1 and whole[0] == message
@@ -868,7 +917,7 @@ def test_forged_traffic_passes_a_live_bus(capture: Capture, schema: TpSchema) ->
             key=keys[active],
             key_id=active,
         )
-        for part in tp_fragment(data, 600, seq):
+        for part in tp_fragment(data, 600, random.getrandbits(32), keys[active], active):
             wire.send(channel, part)
         bus.poll()
 
