@@ -6,10 +6,16 @@ seqlock. A reader reads ``end``, copies the images, then reads ``begin``; only i
 sequence it wanted was the slot left alone while it copied. Readers always take a private copy
 (CAMBADA: each process works on its own copy of the newest frame), so the writer never waits.
 
+The one reader that paces the camera (the ESVS round) writes its *trigger* into the header at each
+grab: when it grabbed (CLOCK_MONOTONIC) and how often it grabs. A camera that sees a live trigger
+renders one frame per grab, finished just before it, as a camera on an external trigger line
+exposes on demand; with none it runs free at its own frame rate.
+
 Layout (native little-endian words, 8-byte aligned)::
 
     header (64 B)  0 magic "RSTEREO1" | 8 version u32 | 12 slots u32 | 16 height u32 | 20 width u32
                    24 writer pid u32 | 28 closed u32 | 32 generation u64 | 40 latest seq u64
+                   48 trigger: latest grab ns u64 | 56 trigger: grab period ns u64 (0: none)
     slot k at 64 + k * stride:
                    0 begin seq | 8 end seq | 16 t_exposure_ns (shared time) | 24 written_ns
                    (CLOCK_MONOTONIC) | 32 left image (height x width grey u8) | right image
@@ -41,13 +47,20 @@ HEADER_BYTES = 64
 SLOT_HEADER_BYTES = 32
 DEFAULT_SLOTS = 4
 _HEADER_FIELDS = struct.Struct("<8sIIIIII")  # magic, version, slots, height, width, pid, closed
-_GENERATION, _LATEST = 4, 5  # uint64 word indices in the header
+_GENERATION, _LATEST, _GRAB, _GRAB_PERIOD = 4, 5, 6, 7  # uint64 word indices in the header
 _BEGIN, _END, _EXPOSURE, _WRITTEN = 0, 1, 2, 3  # int64 word indices in a slot header
 _READ_ATTEMPTS = 4
 
 
 class RingError(RuntimeError):
     """The ring cannot be created or attached (bad name, size, or another live writer)."""
+
+
+class Trigger(NamedTuple):
+    """The pacing reader's grabs, as it last announced them."""
+
+    grab_ns: int  # CLOCK_MONOTONIC of its latest grab
+    period_ns: int  # how often it grabs
 
 
 class FrameInfo(NamedTuple):
@@ -164,7 +177,7 @@ class RingWriter:
         self.seq = 0
         header = self._views.header
         header[_GENERATION] = self.generation
-        header[_LATEST] = 0
+        header[_LATEST] = header[_GRAB] = header[_GRAB_PERIOD] = 0
         # The magic goes in last: a reader attaching meanwhile sees no ring yet, not a half one.
         _HEADER_FIELDS.pack_into(self._shm.buf, 0, b"\0" * 8, VERSION, slots, height, width, os.getpid(), 0)
         self._shm.buf[0:8] = MAGIC
@@ -208,6 +221,14 @@ class RingWriter:
         views.header[_LATEST] = seq
         self.seq = seq
         return seq
+
+    def trigger(self) -> Trigger | None:
+        """The pacing reader's grabs, None before it has announced any."""
+        views = self._views
+        if views is None:
+            raise RingError(f"frame ring {self.name!r} is closed")
+        grab_ns, period_ns = int(views.header[_GRAB]), int(views.header[_GRAB_PERIOD])
+        return Trigger(grab_ns, period_ns) if period_ns > 0 else None
 
     def close(self, unlink: bool = True) -> None:
         """Mark the ring closed (readers detach at once) and remove the name."""
@@ -284,6 +305,16 @@ class RingReader:
             if frame is not None:
                 return frame
         return None
+
+    def trigger(self, period_ns: int) -> None:
+        """Announce a grab now, one of a series every ``period_ns``, to the writer: the pacing
+        reader's call (one per ring), right after each grab. Nothing while detached."""
+        if period_ns <= 0:
+            raise ValueError(f"a trigger period must be positive, got {period_ns}")
+        views = self._views
+        if views is not None:
+            views.header[_GRAB_PERIOD] = period_ns
+            views.header[_GRAB] = self._now_ns()
 
     def read(self, generation: int, seq: int) -> Frame | None:
         """A private copy of frame ``seq`` of ``generation`` if the ring still holds it."""

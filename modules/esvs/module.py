@@ -193,6 +193,8 @@ class Esvs(Module):
     def _grab(self) -> None:
         assert self.reader is not None
         info = self.reader.newest()
+        # The camera renders one frame per grab, finished just before it: tell it our grid.
+        self.reader.trigger(int(self.config.round_period_s * 1e9))
         if info is None or (self.grabbed is not None and info[:2] == self.grabbed[:2]):
             return
         if self.reader.shape != RIG_SHAPE:

@@ -1,21 +1,29 @@
 """The simulated stereo camera pair and frame grabber of the ESVS.
 
 On the vehicle, two FireWire cameras deliver frames into the ESVS computer's memory by DMA while
-its processor does other work (RASCAL section III). Here a process renders, at the camera frame
-rate, the pair the rig sees from the newest true pose, and writes it into the named
-shared-memory frame ring the ESVS reads, stamped with the pose's measurement time (shared time)
-as its exposure time. It reads the simulator's truth, so it is simulation code, like the lidars.
+its processor does other work (RASCAL section III). Here a process renders the pair the rig sees
+from the newest true pose, and writes it into the named shared-memory frame ring the ESVS reads,
+stamped with the pose's measurement time (shared time) as its exposure time. It reads the
+simulator's truth, so it is simulation code, like the lidars.
+
+The ESVS's round announces each grab in the ring (its trigger), and the camera then renders one
+frame per grab, started so that it is in the ring just before the grab: no frame is rendered
+that the ESVS never looks at, and the one it takes is as fresh as the render time allows. With
+no live trigger (no ESVS yet, or it stopped grabbing) the camera runs free at ``fps``.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from modules.esvs.camera import StereoRenderer
-from modules.esvs.frames import DEFAULT_SLOTS, RingWriter
+from modules.esvs.frames import DEFAULT_SLOTS, RingWriter, Trigger
 from modules.esvs.geometry import RASCAL_RIG
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
@@ -28,12 +36,18 @@ from rascal.rtdb import Validity
 TRUTH_MAX_AGE_S = 0.5  # the simulator publishes at 100 Hz: older means it stopped
 MAX_FPS = 60.0  # the Basler cameras' top rate
 FAULT_SENSOR = "esvs"  # scenario fault schedules name the cameras by the system they feed
+PHASE_S = 0.2  # how often the camera reads the trigger and, if its grid moved, retimes the exposures
+PHASE_TOLERANCE_S = 0.002  # exposures this close to their ideal start are left where they are
+STALE_TRIGGER_PERIODS = 3  # a trigger whose latest grab is older than this many of its periods is gone
+MARGIN_S = 0.01  # a triggered frame is meant to be in the ring this long before its grab
+RENDER_HISTORY = 32  # the slowest of this many recent frames sets how early a triggered frame starts
+FIRST_RENDER_S = 0.05  # the render time assumed before the first frame
 
 
 @dataclass(frozen=True)
 class StereoCameraConfig:
     scenario: str = setting(str(DEFAULT_SCENARIO), "scenario file whose world the cameras see")
-    fps: float = setting(15.0, "camera frame rate (the renderer manages >= 20 pairs/s)")
+    fps: float = setting(15.0, "frame rate with no trigger (no ESVS grabbing); triggered: one frame per grab")
     ring_name: str = setting("rascal-stereo", "shared-memory frame ring the ESVS reads")
     ring_slots: int = setting(DEFAULT_SLOTS, "frames the ring holds (a reader may lag this many - 1)")
     seed_offset: int = setting(0, "combined with the scenario seed: change it for independent sensor noise")
@@ -46,16 +60,29 @@ class StereoCamera(Module):
     default_source_id = 19
     Config = StereoCameraConfig
 
-    def __init__(self, config: StereoCameraConfig, runtime: Runtime, world: World | None = None, seed: int = 0) -> None:
-        """``world`` (with its ``seed``) replaces the scenario file, for tests."""
+    def __init__(
+        self,
+        config: StereoCameraConfig,
+        runtime: Runtime,
+        world: World | None = None,
+        seed: int = 0,
+        monotonic_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        """``world`` (with its ``seed``) replaces the scenario file, and ``monotonic_ns`` the
+        clock the ESVS's trigger is read with, for tests."""
         super().__init__(config, runtime)
         self.world = world
         self.seed = seed
+        self.monotonic_ns = monotonic_ns
         self.writer: RingWriter | None = None
         self.last_truth_ns: int | None = None
         self.last_pair: tuple[np.ndarray, np.ndarray] | None = None  # what a STUCK fault repeats
         self.written = 0
-        self.render_s = 0.0
+        self.frame_times_ns: deque[int] = deque(maxlen=RENDER_HISTORY)  # render and write, wall time
+        self.trigger: Trigger | None = None  # the live trigger the exposures follow, None while running free
+        self.start_ns = 0  # a start on the exposures' triggered grid (CLOCK_MONOTONIC)
+        self.grab_ns = 0  # the grab the latest triggered frame was for
+        self.late = 0  # triggered frames still being made at their grab
         self.fault = ""
 
     def on_start(self) -> None:
@@ -65,14 +92,56 @@ class StereoCamera(Module):
         if self.world is None:
             scenario = load_scenario(config.scenario)
             self.world, self.seed = scenario.world, scenario.seed
+        cv2.setNumThreads(1)  # a simulated device: its cost is one core's work, not spread over all
         self.renderer = StereoRenderer(self.world, RASCAL_RIG)
+        # Once, untimed, so that the noise bank and the caches are built before the first frame's
+        # time sets how early triggered frames start.
+        self.renderer.images((0.0, 0.0, 0.0), np.random.default_rng(0))
         self.writer = RingWriter(config.ring_name, RASCAL_RIG.height_px, RASCAL_RIG.width_px, config.ring_slots)
         self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S, SimTruth)
-        self.every(1.0 / config.fps, self.expose, priority=1)
+        self.every(1.0 / config.fps, self.tick, priority=1)
+        self.every(PHASE_S, self.phase, priority=2)
 
     def on_stop(self) -> None:
         if self.writer is not None:
             self.writer.close()
+
+    def tick(self) -> None:
+        """A frame, free-running or, triggered, for the next grab (counted late if not in time)."""
+        trigger = self.trigger
+        if trigger is not None:
+            now_ns = self.monotonic_ns()
+            self.grab_ns = trigger.grab_ns - (trigger.grab_ns - now_ns) // trigger.period_ns * trigger.period_ns
+        self.expose()
+        if trigger is not None and self.monotonic_ns() > self.grab_ns:
+            self.late += 1
+
+    def phase(self) -> None:
+        """Put the exposures on the trigger's grid, each a frame's making ahead of its grab; back
+        on the free-running grid when the trigger goes. Both grids keep time by themselves (the
+        Runtime's and the ESVS's, on one monotonic clock), so this only checks them."""
+        assert self.writer is not None
+        now_ns = self.monotonic_ns()
+        trigger = self.writer.trigger()
+        if trigger is not None and now_ns - trigger.grab_ns > STALE_TRIGGER_PERIODS * trigger.period_ns:
+            trigger = None
+        if trigger is None:
+            if self.trigger is not None:
+                self.runtime.set_period("tick", 1.0 / self.config.fps)
+            self.trigger = None
+            return
+        period_ns = trigger.period_ns
+        lead_ns = max(self.frame_times_ns, default=int(FIRST_RENDER_S * 1e9)) + int(MARGIN_S * 1e9)
+        start_ns = trigger.grab_ns - lead_ns  # one ideal start; the others are whole periods away
+        if self.trigger is not None and self.trigger.period_ns == period_ns:
+            off_ns = (start_ns - self.start_ns) % period_ns
+            if min(off_ns, period_ns - off_ns) <= PHASE_TOLERANCE_S * 1e9:
+                return
+        # The first grab whose start is still ahead, and never one already given a frame.
+        grab_ns = start_ns + lead_ns + -(-(now_ns - start_ns) // period_ns) * period_ns
+        grab_ns = max(grab_ns, self.grab_ns + period_ns)
+        self.runtime.set_period("tick", period_ns / 1e9, first_in_s=(grab_ns - lead_ns - now_ns) / 1e9)
+        self.trigger, self.start_ns = trigger, grab_ns - lead_ns
 
     def expose(self) -> None:
         """One frame from the newest true pose, at most one per pose, as the faults allow."""
@@ -98,25 +167,20 @@ class StereoCamera(Module):
             return
         entropy = [self.seed % 2**64, self.config.seed_offset % 2**64, self.default_source_id, t_meas_ns % 2**64]
         rng = np.random.default_rng(np.random.SeedSequence(entropy))
-        start = time.perf_counter()
-        frame = self.renderer.render((truth.east_m, truth.north_m, truth.yaw_rad), rng)
-        left, right = frame.left, frame.right
-        extra = np.prod([fault.magnitude for fault in faults if fault.kind is FaultKind.NOISE])
-        if extra > 1.0:
-            # NOISE multiplies the sensor noise: add the difference on top of the rendered noise.
-            std = self.renderer.config.noise_std_dn * float(np.sqrt(extra**2 - 1.0))
-            left, right = (_noisy(image, std, rng) for image in (left, right))
-        self.render_s = time.perf_counter() - start
+        start = time.perf_counter_ns()
+        noise = float(np.prod([fault.magnitude for fault in faults if fault.kind is FaultKind.NOISE]))
+        left, right = self.renderer.images((truth.east_m, truth.north_m, truth.yaw_rad), rng, noise_gain=noise)
         self.writer.write(left, right, t_meas_ns)
+        self.frame_times_ns.append(time.perf_counter_ns() - start)
         self.last_pair = (left, right)
         self.written += 1
 
     def status_detail(self) -> str:
         seq = self.writer.seq if self.writer is not None else 0
-        text = f"ring {self.config.ring_name!r} frames {self.written} (seq {seq}); render {self.render_s * 1e3:.0f} ms"
+        slowest = max(self.frame_times_ns, default=0) / 1e6
+        text = f"ring {self.config.ring_name!r} frames {self.written} (seq {seq}); render {slowest:.0f} ms"
+        if self.trigger is not None:
+            text += f"; triggered every {self.trigger.period_ns / 1e6:.0f} ms, {self.late} late"
+        else:
+            text += f"; free-running {self.config.fps:g} fps"
         return text + (f"; fault {self.fault}" if self.fault else "")
-
-
-def _noisy(image: np.ndarray, std: float, rng: np.random.Generator) -> np.ndarray:
-    noisy = image.astype(np.float32) + rng.normal(0.0, std, image.shape).astype(np.float32)
-    return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)

@@ -16,7 +16,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from statistics import NormalDist
 
 import cv2
 import numpy as np
@@ -25,7 +24,7 @@ from numpy.typing import NDArray
 from modules.esvs.camera import solids, terrain
 from modules.esvs.camera.rays import RigRays, rig_rays
 from modules.esvs.camera.road import RoadDecal, draw_decal, lane_arrays
-from modules.esvs.camera.textures import TextureSet, texture_set
+from modules.esvs.camera.textures import FIXED_ONE, TextureSet, texture_set
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
 from modules.lidar.raycast import Pose2D
 from modules.sim.world import TerrainHazard, Texture, World, WorldObstacle
@@ -41,6 +40,9 @@ _MATERIAL_OF_TEXTURE = {texture: 3 + i for i, texture in enumerate(Texture)}
 _SKY_TINT = (1.18, 1.03, 0.86)
 _LANE_TINT = (0.88, 0.98, 1.06)
 _NEAR_M = 0.05  # solids are clipped this far in front of the camera plane before projection
+_MOTTLE_STEP = 4  # the ground mottle is sampled every this many columns
+_NOISE_BANK_SEED = 0x5E4503  # the sensor noise bank is fixed; each frame's windows come from its rng
+_NOISE_BANK_IMAGES = 4  # bank per camera, in images
 
 FloatArray = NDArray[np.float64]
 
@@ -116,13 +118,20 @@ class StereoFrame:
 
 
 @dataclass
+class _Truth:
+    """What each pixel shows: label (LABEL_* or obstacle index + 1) and material (for colour)."""
+
+    labels: NDArray[np.int16]
+    material: NDArray[np.uint8]
+
+
+@dataclass
 class _View:
-    """One camera's render before the sensor: radiance in DN, depth, labels and materials."""
+    """One camera's render before the sensor: radiance in DN, depth, and the truth if asked for."""
 
     radiance: NDArray[np.float32]
     depth: NDArray[np.float32]
-    labels: NDArray[np.int16]
-    material: NDArray[np.uint8]
+    truth: _Truth | None
 
 
 @dataclass
@@ -152,6 +161,21 @@ class _FrameScene:
     sun: FloatArray  # unit vector towards the sun, vehicle frame
 
 
+@dataclass(frozen=True)
+class _Flat:
+    """One camera's view of flat ground, the same at every pose: a frame starts from it and
+    changes only the pixels a hazard moved."""
+
+    seen: NDArray[np.bool_]  # rows from first_ground_row down: flat ground within far_m
+    radiance: NDArray[np.float32]  # whole image: the sky, and the haze's share of the ground where seen
+    labels: NDArray[np.int16]  # whole image: LABEL_GROUND where seen, LABEL_SKY elsewhere
+    material: NDArray[np.uint8]
+    decal_forward: NDArray[np.float32]  # ground rows: where the flat-ground hit lies in road-decal pixels
+    decal_left: NDArray[np.float32]
+    mottle_forward: NDArray[np.float32]  # ground rows, every fourth column: the flat-ground hit
+    mottle_left: NDArray[np.float32]
+
+
 class StereoRenderer:
     """Renders stereo pairs of one world from one rig; build once, call ``render`` per pose."""
 
@@ -167,10 +191,10 @@ class StereoRenderer:
         self._lanes = lane_arrays(world.lane_borders)
         self._sky = self._sky_radiance()
         self._lod_bands = self._ground_bands()
-        clear = np.exp(
-            -np.minimum(self.rays.row_depth[self.rays.first_ground_row :], self.config.far_m) / self.config.visibility_m
-        )
-        self._row_clear = clear.astype(np.float32)
+        self._row_gain, self._row_offset = self._ground_rows()
+        self._flat = (self._flat_view(right=False), self._flat_view(right=True))
+        # Brightness factor of each road-edge coverage level (0-255).
+        self._edge_gain = (1.0 + (self.config.road_edge_gain - 1.0) * np.arange(256) / 255).astype(np.float32)
         # Offsets into the material tiles, fixed per obstacle so twin rocks don't look identical.
         golden = (math.sqrt(5) - 1) / 2
         self._texture_offsets = [
@@ -179,26 +203,32 @@ class StereoRenderer:
 
     # -- public ---------------------------------------------------------------------------------
 
-    def render(self, pose: Sequence[float], rng: np.random.Generator | None = None, color: bool = False) -> StereoFrame:
-        """The pair seen from a vehicle at ``pose`` = (east_m, north_m, yaw_rad). Sensor noise is
-        drawn from ``rng`` (none without one); ``color`` adds BGR images."""
+    def render(
+        self,
+        pose: Sequence[float],
+        rng: np.random.Generator | None = None,
+        color: bool = False,
+        *,
+        noise_gain: float = 1.0,
+    ) -> StereoFrame:
+        """The pair seen from a vehicle at ``pose`` = (east_m, north_m, yaw_rad), with its ground
+        truth. Sensor noise is drawn from ``rng`` (none without one), ``noise_gain`` times the
+        configured level; ``color`` adds BGR images."""
         pose = _pose(pose)
-        scene = self._frame_scene(pose)
-        left, right = self._view(scene, right=False), self._view(scene, right=True)
-        cfg = self.config
-        left_dn = self._sensor(left.radiance, cfg.left_gain, cfg.left_offset_dn, rng)
-        right_dn = self._sensor(right.radiance, cfg.right_gain, cfg.right_offset_dn, rng)
-        left_image, right_image = _to_uint8(left_dn), _to_uint8(right_dn)
+        left, right = self._views(pose, truth=True)
+        left_image, right_image = self._sensor(left, right, rng, noise_gain)
+        assert left.truth is not None and right.truth is not None
         left_bgr = right_bgr = None
         if color:
             table = _tint_table(self.textures)
-            left_bgr, right_bgr = _tinted(left_image, left.material, table), _tinted(right_image, right.material, table)
+            left_bgr = _tinted(left_image, left.truth.material, table)
+            right_bgr = _tinted(right_image, right.truth.material, table)
         return StereoFrame(
             left=left_image,
             right=right_image,
             disparity_px=self._disparity(left.depth),
             depth_m=left.depth,
-            labels=left.labels,
+            labels=left.truth.labels,
             right_disparity_px=self._disparity(right.depth),
             pose=pose,
             rig=self.rig,
@@ -207,7 +237,31 @@ class StereoRenderer:
             right_bgr=right_bgr,
         )
 
+    def images(
+        self, pose: Sequence[float], rng: np.random.Generator | None = None, *, noise_gain: float = 1.0
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """The left and right images ``render`` gives, without the ground truth, which is a
+        tenth of the cost: what a camera delivers."""
+        return self._sensor(*self._views(_pose(pose), truth=False), rng, noise_gain)
+
     # -- per frame ------------------------------------------------------------------------------
+
+    def _views(self, pose: Pose2D, truth: bool) -> tuple[_View, _View]:
+        scene = self._frame_scene(pose)
+        return self._view(scene, right=False, truth=truth), self._view(scene, right=True, truth=truth)
+
+    def _sensor(
+        self, left: _View, right: _View, rng: np.random.Generator | None, noise_gain: float
+    ) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        if not (math.isfinite(noise_gain) and noise_gain >= 0):
+            raise ValueError(f"noise_gain must be >= 0, got {noise_gain!r}")
+        cfg = self.config
+        std = cfg.noise_std_dn * noise_gain
+        left_noise, right_noise = self._noise(rng) if rng is not None and std > 0 else (None, None)
+        return (
+            _exposed(left.radiance, cfg.left_gain, cfg.left_offset_dn, left_noise, std),
+            _exposed(right.radiance, cfg.right_gain, cfg.right_offset_dn, right_noise, std),
+        )
 
     def _frame_scene(self, pose: Pose2D) -> _FrameScene:
         cfg = self.config
@@ -245,23 +299,21 @@ class StereoRenderer:
         )
         return _FrameScene(pose, obstacles, hazards, decal, sun)
 
-    def _view(self, scene: _FrameScene, right: bool) -> _View:
+    def _view(self, scene: _FrameScene, right: bool, truth: bool) -> _View:
         rays = self.rays
-        height, width = self.rig.height_px, self.rig.width_px
-        top = rays.first_ground_row
         centre = rays.camera_centre(right)
-        depth = np.array(rays.flat_depth)
-        labels = np.full((height, width), LABEL_SKY, dtype=np.int16)
-        material = np.zeros((height, width), dtype=np.uint8)
-        radiance = np.array(self._sky)
-        if top < height:
+        flat = self._flat[int(right)]
+        view = _View(np.array(flat.radiance), np.array(rays.flat_depth), None)
+        if truth:
+            view.truth = _Truth(flat.labels.copy(), flat.material.copy())
+        if rays.first_ground_row < self.rig.height_px:
             ground = _Ground(rays.ground_forward, rays.ground_left(right))
             if scene.hazards:
-                self._terrain(scene, centre, right, depth, ground)
-            self._ground(scene, depth, ground, radiance, labels, material)
+                self._terrain(scene, centre, right, view.depth, ground)
+            self._ground(scene, flat, ground, view)
         for index, obstacle in scene.obstacles:
-            self._obstacle(scene, index, obstacle, centre, right, depth, radiance, labels, material)
-        return _View(radiance, depth, labels, material)
+            self._obstacle(scene, index, obstacle, centre, right, view)
+        return view
 
     def _terrain(self, scene: _FrameScene, centre: FloatArray, right: bool, depth: FloatArray, ground: _Ground) -> None:
         """Re-intersect the ground pixels that may see a hazard; updates ``depth`` and ``ground``."""
@@ -299,66 +351,54 @@ class StereoRenderer:
         ground.relief_shade = self._shade(hits.normal @ scene.sun) / self._shade(scene.sun[2])
         ground.in_hazard = hits.in_hazard
 
-    def _ground(
-        self,
-        scene: _FrameScene,
-        depth: FloatArray,
-        ground: _Ground,
-        radiance: NDArray[np.float32],
-        labels: NDArray[np.int16],
-        material: NDArray[np.uint8],
-    ) -> None:
+    def _ground(self, scene: _FrameScene, flat: _Flat, ground: _Ground, view: _View) -> None:
         """Textured, shaded ground with road edges and haze over the rows below the horizon."""
         top = self.rays.first_ground_row
         east, north, yaw = scene.pose
         forward, left = ground.forward, ground.left
         tex_forward = forward if ground.texture_forward is None else ground.texture_forward
         tex_left = left if ground.texture_left is None else ground.texture_left
-        soil = self.textures.ground
-        albedo = np.empty(forward.shape, dtype=np.float32)
+        # Brightness relative to the soil's mean on flat ground (soil and mottle are fixed point;
+        # the rows' sun, on the mottle, takes their scale out), then the haze's share is added.
+        bright = np.empty(forward.shape, dtype=np.float32)
+        texture = self.textures.ground.texture
         for r0, r1, level in self._lod_bands:
-            albedo[r0:r1] = soil.texture.sample_ground(tex_forward[r0:r1], tex_left[r0:r1], east, north, yaw, level)
+            bright[r0:r1] = texture.sample_ground(tex_forward[r0:r1], tex_left[r0:r1], east, north, yaw, level)
         # The mottle varies over metres: every fourth column, interpolated across, is exact enough
         # (a row can span metres far away, so rows are all sampled).
-        coarse = self.textures.ground_mottle.sample_ground(tex_forward[:, ::4], tex_left[:, ::4], east, north, yaw, 0)
-        albedo *= cv2.resize(coarse, (forward.shape[1], forward.shape[0]), interpolation=cv2.INTER_LINEAR)
-        albedo *= np.float32(soil.albedo_dn) * self._shade(scene.sun[2])
+        if ground.texture_forward is None:
+            mottle_forward, mottle_left = flat.mottle_forward, flat.mottle_left
+        else:
+            mottle_forward = np.ascontiguousarray(tex_forward[:, ::_MOTTLE_STEP])
+            mottle_left = np.ascontiguousarray(tex_left[:, ::_MOTTLE_STEP])
+        coarse = self.textures.ground_mottle.sample_ground(mottle_forward, mottle_left, east, north, yaw, 0)
+        # The rows' sun and haze (by flat-ground depth: hazards move depths too little to matter)
+        # go on the coarse mottle, a quarter of the pixels; resizing only across keeps rows apart.
+        coarse = coarse * self._row_gain
+        bright *= cv2.resize(coarse, (forward.shape[1], forward.shape[0]), interpolation=cv2.INTER_LINEAR)
+        seen = flat.seen
         if ground.rows is not None:
-            albedo[ground.rows, ground.cols] *= ground.relief_shade
-        edge = None
+            bright[ground.rows, ground.cols] *= ground.relief_shade
+            seen = seen.copy()
+            seen[ground.rows, ground.cols] = np.isfinite(view.depth[ground.rows + top, ground.cols])
+        coverage = None
         if scene.decal is not None:
-            coverage = scene.decal.coverage(forward, left)
-            albedo *= 1.0 + np.float32(self.config.road_edge_gain - 1.0) * coverage
-            edge = coverage > 0.5
-        # Haze by the flat-ground depth of the row: hazards move depths too little to matter.
-        haze = np.float32(self.config.sky_horizon_dn)
-        albedo -= haze
-        albedo *= self._row_clear[:, None]
-        albedo += haze
-        seen = np.isfinite(depth[top:])
-        np.copyto(radiance[top:], albedo, where=seen)
-        band, mat = labels[top:], material[top:]
-        band[seen] = LABEL_GROUND
-        mat[seen] = _MATERIAL_GROUND
-        if edge is not None:
-            edge &= seen
-            band[edge] = LABEL_LANE_BORDER
-            mat[edge] = _MATERIAL_LANE
+            coverage = scene.decal.coverage_px(flat.decal_forward, flat.decal_left)
+            if ground.rows is not None:
+                rows, cols = ground.rows, ground.cols
+                coverage[rows, cols] = scene.decal.coverage(forward[rows, cols], left[rows, cols])
+            bright *= cv2.LUT(coverage, self._edge_gain)
+        radiance = view.radiance[top:]
+        np.add(radiance, bright, out=radiance, where=flat.seen)
         if ground.rows is not None:
-            hazard = ground.in_hazard & seen[ground.rows, ground.cols]
-            band[ground.rows[hazard], ground.cols[hazard]] = LABEL_HAZARD
+            rows, cols = ground.rows, ground.cols
+            moved = bright[rows, cols] + self._row_offset[rows, 0]
+            radiance[rows, cols] = np.where(seen[rows, cols], moved, self._sky[rows + top, cols])
+        if view.truth is not None:
+            _label_ground(view.truth, top, seen, ground, coverage)
 
     def _obstacle(
-        self,
-        scene: _FrameScene,
-        index: int,
-        obstacle: WorldObstacle,
-        centre: FloatArray,
-        right: bool,
-        depth: FloatArray,
-        radiance: NDArray[np.float32],
-        labels: NDArray[np.int16],
-        material: NDArray[np.uint8],
+        self, scene: _FrameScene, index: int, obstacle: WorldObstacle, centre: FloatArray, right: bool, view: _View
     ) -> None:
         box = self._pixel_box(solids.corners(obstacle, self.config.buried_m), right)
         if box is None:
@@ -366,23 +406,25 @@ class StereoRenderer:
         r0, r1, c0, c1 = box
         direction = self.rays.direction[r0:r1, c0:c1].reshape(-1, 3)
         hits = solids.solid_hits(obstacle, centre, direction, self.config.buried_m)
-        current = depth[r0:r1, c0:c1].reshape(-1)
+        current = view.depth[r0:r1, c0:c1].reshape(-1)
         closer = np.flatnonzero(hits.depth < current)
         if not closer.size:
             return
         t = hits.depth[closer]
         look = self.textures.materials[obstacle.texture]
-        level = look.texture.level_for(float(np.median(t)) / self.rig.focal_px * self.config.lod_bias)
+        middle = float(np.partition(t, t.size // 2)[t.size // 2])  # a median, without np.median's overhead
+        level = look.texture.level_for(middle / self.rig.focal_px * self.config.lod_bias)
         dx, dy = self._texture_offsets[index]
         value = look.texture.sample(hits.surface_x[closer] + dx, hits.surface_y[closer] + dy, level)
         value *= np.float32(look.albedo_dn)
         value *= self._shade(hits.normal[closer] @ scene.sun)
         rows, cols = np.unravel_index(closer, (r1 - r0, c1 - c0))
         rows, cols = rows + r0, cols + c0
-        depth[rows, cols] = t
-        radiance[rows, cols] = self._hazed(value, t)
-        labels[rows, cols] = index + 1
-        material[rows, cols] = _MATERIAL_OF_TEXTURE[obstacle.texture]
+        view.depth[rows, cols] = t
+        view.radiance[rows, cols] = self._hazed(value, t)
+        if view.truth is not None:
+            view.truth.labels[rows, cols] = index + 1
+            view.truth.material[rows, cols] = _MATERIAL_OF_TEXTURE[obstacle.texture]
 
     # -- helpers --------------------------------------------------------------------------------
 
@@ -435,6 +477,39 @@ class StereoRenderer:
         sky.flags.writeable = False
         return sky
 
+    def _flat_view(self, right: bool) -> _Flat:
+        """One camera's view of flat ground (see ``_Flat``)."""
+        rays, rig = self.rays, self.rig
+        top = rays.first_ground_row
+        seen = np.isfinite(rays.flat_depth[top:])
+        labels = np.full((rig.height_px, rig.width_px), LABEL_SKY, dtype=np.int16)
+        labels[top:][seen] = LABEL_GROUND
+        material = np.where(labels == LABEL_GROUND, _MATERIAL_GROUND, _MATERIAL_SKY).astype(np.uint8)
+        scale = 1.0 / self.config.road_resolution_m
+        decal_forward = (rays.ground_forward * scale).astype(np.float32)
+        decal_left = (rays.ground_left(right) * scale).astype(np.float32)
+        mottle = (
+            np.ascontiguousarray(rays.ground_forward[:, ::_MOTTLE_STEP]),
+            np.ascontiguousarray(rays.ground_left(right)[:, ::_MOTTLE_STEP]),
+        )
+        radiance = np.array(self._sky)
+        np.copyto(radiance[top:], np.broadcast_to(self._row_offset, seen.shape), where=seen)
+        arrays = (seen, radiance, labels, material, decal_forward, decal_left, *mottle)
+        for array in arrays:
+            array.flags.writeable = False
+        return _Flat(*arrays)
+
+    def _ground_rows(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(gain, offset) per ground row, as (rows, 1) columns, taking a brightness factor to
+        radiance: the soil's albedo in the sun on flat ground, hazed towards the horizon sky by
+        the row's flat-ground depth."""
+        cfg = self.config
+        clear = np.exp(-np.minimum(self.rays.row_depth[self.rays.first_ground_row :], cfg.far_m) / cfg.visibility_m)
+        sun = float(self._shade(math.sin(math.radians(cfg.sun_elevation_deg))))
+        gain = self.textures.ground.albedo_dn * sun * clear / FIXED_ONE**2
+        offset = cfg.sky_horizon_dn * (1.0 - clear)
+        return gain.astype(np.float32)[:, None], offset.astype(np.float32)[:, None]
+
     def _ground_bands(self) -> list[tuple[int, int, int]]:
         """(first row, end row, mip level) runs, relative to first_ground_row: the level matches a
         pixel's footprint across the image row, which is depth / f on flat ground."""
@@ -451,20 +526,15 @@ class StereoRenderer:
                 bands.append((start, start + 1, level))
         return bands
 
-    def _sensor(
-        self, radiance: NDArray[np.float32], gain: float, offset: float, rng: np.random.Generator | None
-    ) -> NDArray[np.float32]:
-        """Gain, black level and noise, in place on ``radiance`` (returned)."""
-        radiance *= np.float32(gain)
-        radiance += np.float32(offset)
-        if rng is not None and self.config.noise_std_dn > 0:
-            # Gaussian noise by inverse-CDF lookup of random 16-bit words: ~3x cheaper than
-            # Generator.standard_normal, which would otherwise be a fifth of the frame's cost.
-            words = np.frombuffer(rng.bytes(2 * radiance.size), dtype=np.uint16)
-            noise = np.take(_gaussian_table(), words).reshape(radiance.shape)
-            noise *= np.float32(self.config.noise_std_dn)
-            radiance += noise
-        return radiance
+    def _noise(self, rng: np.random.Generator) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Standard normal noise images for the left and right camera: windows at offsets drawn
+        from ``rng`` into the cameras' own halves of a fixed bank. Any pixel's noise is a fresh
+        bank entry, and the two cameras never share one, so stereo cannot match noise."""
+        shape = (self.rig.height_px, self.rig.width_px)
+        pixels = shape[0] * shape[1]
+        bank = _noise_bank(pixels)
+        left, right = (int(start) for start in rng.integers(0, bank.shape[1] - pixels + 1, size=2))
+        return bank[0, left : left + pixels].reshape(shape), bank[1, right : right + pixels].reshape(shape)
 
     def _disparity(self, depth: NDArray[np.float32]) -> NDArray[np.float32]:
         disparity = np.empty(depth.shape, dtype=np.float32)
@@ -473,13 +543,43 @@ class StereoRenderer:
         return disparity
 
 
-@lru_cache(maxsize=1)
-def _gaussian_table() -> NDArray[np.float32]:
-    """Standard normal quantiles at the centres of 65536 equal-probability bins."""
-    normal = NormalDist()
-    table = np.array([normal.inv_cdf((k + 0.5) / 65536) for k in range(65536)], dtype=np.float32)
-    table.flags.writeable = False
-    return table
+def _label_ground(
+    truth: _Truth, top: int, seen: NDArray[np.bool_], ground: _Ground, coverage: NDArray[np.uint8] | None
+) -> None:
+    """Ground, road-edge and hazard labels below the horizon, over the flat view's."""
+    band, mat = truth.labels[top:], truth.material[top:]
+    if ground.rows is not None:
+        moved = seen[ground.rows, ground.cols]
+        band[ground.rows, ground.cols] = np.where(moved, LABEL_GROUND, LABEL_SKY)
+        mat[ground.rows, ground.cols] = np.where(moved, _MATERIAL_GROUND, _MATERIAL_SKY)
+    if coverage is not None:
+        edge = (coverage > 127) & seen  # more than half covered
+        band[edge] = LABEL_LANE_BORDER
+        mat[edge] = _MATERIAL_LANE
+    if ground.rows is not None:
+        hazard = ground.in_hazard & seen[ground.rows, ground.cols]
+        band[ground.rows[hazard], ground.cols[hazard]] = LABEL_HAZARD
+
+
+@lru_cache(maxsize=2)
+def _noise_bank(pixels: int) -> NDArray[np.float32]:
+    """(2, NOISE_BANK_IMAGES * pixels) standard normal samples, one row per camera, always the
+    same: drawing them per frame would cost more than the rest of the sensor model."""
+    bank = np.random.default_rng(_NOISE_BANK_SEED).standard_normal((2, _NOISE_BANK_IMAGES * pixels), dtype=np.float32)
+    bank.flags.writeable = False
+    return bank
+
+
+def _exposed(
+    radiance: NDArray[np.float32], gain: float, offset: float, noise: NDArray[np.float32] | None, std: float
+) -> NDArray[np.uint8]:
+    """The sensor: gain, black level and ``std`` times ``noise``, rounded and saturated to 8
+    bits (``radiance`` is used as scratch)."""
+    if noise is None:
+        radiance *= np.float32(gain)
+        radiance += np.float32(offset)
+        return _to_uint8(radiance)
+    return cv2.addWeighted(radiance, gain, noise, std, offset, dtype=cv2.CV_8U)
 
 
 def _pose(pose: Sequence[float]) -> Pose2D:

@@ -33,15 +33,21 @@ class RoadDecal:
     x0_m: float
     y0_m: float
 
-    def coverage(self, forward_m: NDArray[np.floating], left_m: NDArray[np.floating]) -> NDArray[np.float32]:
-        """Fraction 0..1 of a road-edge band at vehicle-frame ground points (any shape)."""
+    def coverage(self, forward_m: NDArray[np.floating], left_m: NDArray[np.floating]) -> NDArray[np.uint8]:
+        """Coverage 0-255 of a road-edge band at vehicle-frame ground points (any shape)."""
+        scale = 1.0 / self.resolution_m
+        return self.coverage_px(
+            np.asarray(forward_m * scale, dtype=np.float32), np.asarray(left_m * scale, dtype=np.float32)
+        )
+
+    def coverage_px(self, forward_px: NDArray[np.float32], left_px: NDArray[np.float32]) -> NDArray[np.uint8]:
+        """The same at points given in decal pixels (forward_m / resolution_m, left_m /
+        resolution_m): for points fixed in the vehicle frame, such as a camera's view of flat
+        ground, the caller computes those once and each frame only shifts them."""
         # cv2 draws a vertex at integer coordinates on that pixel's centre: no half-pixel shift.
-        scale = np.float32(1.0 / self.resolution_m)
-        cols = (forward_m - np.float32(self.x0_m)) * scale
-        rows = (np.float32(self.y0_m) - left_m) * scale
-        coverage = remap_wrapped(self.image, cols.astype(np.float32), rows.astype(np.float32), cv2.BORDER_CONSTANT)
-        coverage *= np.float32(1 / 255)
-        return coverage
+        cols = forward_px - np.float32(self.x0_m / self.resolution_m)
+        rows = np.float32(self.y0_m / self.resolution_m) - left_px
+        return remap_wrapped(self.image, cols, rows, cv2.BORDER_CONSTANT)
 
 
 def lane_arrays(lines: tuple[LaneBorderLine, ...]) -> tuple[NDArray[np.float64], ...]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -21,10 +22,12 @@ from numpy.typing import NDArray
 from modules.sim.world import Texture
 
 FloatImage = NDArray[np.float32]
+Image = TypeVar("Image", NDArray[np.float32], NDArray[np.uint8])
 
 # cv2.remap converts coordinates to 16-bit fixed point and refuses images this large or larger.
 _REMAP_LIMIT = 32767
 _FLAT_BLOCK = 4096  # 1-D lookups are folded into rows this long for cv2.remap
+FIXED_ONE = 2**14  # a brightness factor of 1 in MipTexture.fixed; factors up to 4 fit uint16
 
 
 def periodic_noise(
@@ -64,6 +67,9 @@ class MipTexture:
 
     levels: tuple[FloatImage, ...]
     texel_m: float
+    # The same levels in units of 1 / FIXED_ONE, for sample_ground: half the memory of float32,
+    # and cv2 interpolates them faster; the rounding is a hundredth of a grey level.
+    fixed: tuple[NDArray[np.uint16], ...]
 
     @classmethod
     def from_tile(cls, tile: FloatImage, texel_m: float, smallest_px: int = 4) -> MipTexture:
@@ -74,9 +80,10 @@ class MipTexture:
         while levels[-1].shape[0] > smallest_px:
             side = levels[-1].shape[0] // 2
             levels.append(levels[-1].reshape(side, 2, side, 2).mean(axis=(1, 3), dtype=np.float32))
-        for level in levels:
+        fixed = [np.clip(np.rint(level * FIXED_ONE), 0, np.iinfo(np.uint16).max).astype(np.uint16) for level in levels]
+        for level in levels + fixed:
             level.flags.writeable = False
-        return cls(tuple(levels), texel_m)
+        return cls(tuple(levels), texel_m, tuple(fixed))
 
     @property
     def period_m(self) -> float:
@@ -107,24 +114,24 @@ class MipTexture:
         north_m: float,
         yaw_rad: float,
         level: int,
-    ) -> FloatImage:
-        """Lookup at vehicle-frame ground points (2-D float32 arrays) of a vehicle at (east_m,
-        north_m, yaw_rad), anchored to the world. The rotation into world axes is folded into
-        one affine map per coordinate, relative to the tile corner nearest the vehicle, so no
-        per-pixel double-precision arithmetic or modulo is needed."""
-        image = self.levels[level]
+    ) -> NDArray[np.uint16]:
+        """Lookup at vehicle-frame ground points (2-D float32 arrays, within a few km of the
+        vehicle) of a vehicle at (east_m, north_m, yaw_rad), anchored to the world; brightness
+        factors in units of 1 / FIXED_ONE. The rotation into world axes is folded into one
+        affine map per coordinate, relative to the tile corner nearest the vehicle, so no
+        per-pixel double-precision arithmetic is needed: float32 holds a texel coordinate to
+        cv2's 1/32 texel up to 2**19 texels (5 km at 1 cm)."""
+        if forward_m.ndim != 2 or max(forward_m.shape) >= _REMAP_LIMIT:
+            raise ValueError(f"ground lookups take 2-D arrays smaller than {_REMAP_LIMIT}, got {forward_m.shape}")
+        image = self.fixed[level]
         texel = self.texel_m * 2**level
         period = self.period_m
         # The vehicle's position within its tile; whole tiles drop out of a periodic lookup.
         east0, north0 = east_m - math.floor(east_m / period) * period, north_m - math.floor(north_m / period) * period
-        reach = (float(np.abs(forward_m).max(initial=0.0)) + float(np.abs(left_m).max(initial=0.0)) + period) / texel
-        if reach >= _REMAP_LIMIT or forward_m.ndim != 2 or max(forward_m.shape) >= _REMAP_LIMIT:
-            c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-            f64, l64 = forward_m.astype(np.float64), left_m.astype(np.float64)
-            return self.sample(east0 + c * f64 - s * l64, north0 + s * f64 + c * l64, level)
         c, s = math.cos(yaw_rad) / texel, math.sin(yaw_rad) / texel
-        cols = cv2.addWeighted(forward_m, c, left_m, -s, east0 / texel - 0.5)
-        rows = cv2.addWeighted(forward_m, s, left_m, c, north0 / texel - 0.5)
+        side = image.shape[0]
+        cols = _wrap_in_place(cv2.addWeighted(forward_m, c, left_m, -s, east0 / texel - 0.5), side)
+        rows = _wrap_in_place(cv2.addWeighted(forward_m, s, left_m, c, north0 / texel - 0.5), side)
         return cv2.remap(image, cols, rows, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
 
@@ -132,14 +139,25 @@ def _wrap(coordinate: NDArray[np.float64], side: int) -> NDArray[np.float32]:
     return (coordinate - np.floor(coordinate * (1.0 / side)) * side).astype(np.float32)
 
 
+def _wrap_in_place(coordinate: NDArray[np.float32], side: int) -> NDArray[np.float32]:
+    """Texel coordinates moved onto the tile by whole tiles (exact: ``side`` is a power of two).
+    cv2.remap takes a slow per-pixel border path for every lookup off the image, which is nearly
+    all of them unwrapped: wrapped, only the tile's last row and column do."""
+    tiles = coordinate * np.float32(1.0 / side)
+    np.floor(tiles, out=tiles)
+    tiles *= np.float32(side)
+    coordinate -= tiles
+    return coordinate
+
+
 def remap_wrapped(
-    image: FloatImage | NDArray[np.uint8],
+    image: Image,
     cols: NDArray[np.float32],
     rows: NDArray[np.float32],
     border: int = cv2.BORDER_WRAP,
-) -> NDArray[np.float32]:
+) -> Image:
     """cv2.remap (bilinear) for coordinate arrays of any shape, including 1-D ones longer than
-    cv2's 32767 limit (folded into rows). Returns float32 of the coordinates' shape."""
+    cv2's 32767 limit (folded into rows). Returns the image's type in the coordinates' shape."""
     shape = cols.shape
     if cols.ndim == 2 and max(shape) < _REMAP_LIMIT:
         out = cv2.remap(image, cols, rows, cv2.INTER_LINEAR, borderMode=border)
@@ -147,7 +165,7 @@ def remap_wrapped(
         flat_c, flat_r = cols.reshape(-1), rows.reshape(-1)
         count = flat_c.size
         if count == 0:
-            return np.zeros(shape, dtype=np.float32)
+            return np.zeros(shape, dtype=image.dtype)
         width = min(count, _FLAT_BLOCK)
         padded = -(-count // width) * width
         map_c = np.zeros(padded, dtype=np.float32)
@@ -155,7 +173,7 @@ def remap_wrapped(
         map_c[:count], map_r[:count] = flat_c, flat_r
         out = cv2.remap(image, map_c.reshape(-1, width), map_r.reshape(-1, width), cv2.INTER_LINEAR, borderMode=border)
         out = out.reshape(-1)[:count]
-    return out.reshape(shape).astype(np.float32, copy=False)
+    return out.reshape(shape)
 
 
 @dataclass(frozen=True)

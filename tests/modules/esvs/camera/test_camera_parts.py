@@ -10,7 +10,7 @@ import pytest
 
 from modules.esvs.camera import solids, terrain
 from modules.esvs.camera.road import draw_decal, lane_arrays
-from modules.esvs.camera.textures import MipTexture, periodic_noise, remap_wrapped, texture_set
+from modules.esvs.camera.textures import FIXED_ONE, MipTexture, periodic_noise, remap_wrapped, texture_set
 from modules.lidar.profile import ground_height
 from modules.sim.world import HazardKind, LaneBorderLine, Shape, TerrainHazard, WorldObstacle
 
@@ -27,6 +27,9 @@ def test_mip_levels_halve_and_keep_the_mean() -> None:
     texture = MipTexture.from_tile(periodic_noise(64, np.random.default_rng(1)) + 1.0, texel_m=0.01)
     assert [level.shape[0] for level in texture.levels] == [64, 32, 16, 8, 4]
     assert all(float(level.mean()) == pytest.approx(1.0, abs=1e-5) for level in texture.levels)
+    for level, fixed in zip(texture.levels, texture.fixed, strict=True):  # saturated outside [0, 4)
+        expected = np.clip(level, 0.0, np.iinfo(np.uint16).max / FIXED_ONE)
+        assert fixed.dtype == np.uint16 and np.abs(fixed / FIXED_ONE - expected).max() <= 0.5 / FIXED_ONE
     assert texture.level_for(0.005) == 0 and texture.level_for(0.045) == 2 and texture.level_for(10.0) == 4
     with pytest.raises(ValueError, match="power-of-two"):
         MipTexture.from_tile(np.zeros((48, 48), np.float32), texel_m=0.01)
@@ -42,10 +45,11 @@ def test_ground_lookup_is_anchored_to_the_world_whatever_the_pose(level: int) ->
         c, s = math.cos(yaw), math.sin(yaw)
         f64, l64 = forward.astype(float), left.astype(float)
         expected = soil.sample(east + c * f64 - s * l64, north + s * f64 + c * l64, level)
-        difference = np.abs(soil.sample_ground(forward, left, east, north, yaw, level) - expected)
+        difference = np.abs(soil.sample_ground(forward, left, east, north, yaw, level) / FIXED_ONE - expected)
         # cv2.remap weights texels in 1/32 steps, so a rounding-level shift in a coordinate can
-        # move a value by 1/32 of the step between neighbouring texels; no more.
-        assert float(np.median(difference)) < 1e-4 and float(difference.max()) < 0.03
+        # move a value by 1/32 of the step between neighbouring texels; no more. The fixed-point
+        # levels add at most a unit either way.
+        assert float(np.median(difference)) < 2 / FIXED_ONE and float(difference.max()) < 0.03
 
 
 def test_long_flat_lookups_are_folded_for_opencv() -> None:
@@ -146,11 +150,12 @@ def test_road_edges_cover_the_lane_border_and_nothing_beside_it() -> None:
     forward = np.array([5.0, 20.0, 60.0, 140.0, 20.0, 20.0, 160.0])
     left = np.array([3.0, 3.0, 3.05, 2.95, 3.6, 2.0, 3.0])
     coverage = decal.coverage(forward, left)
-    assert np.all(coverage[:4] > 0.8)
-    assert np.all(coverage[4:] < 0.05)  # 0.6 m and 1 m beside it, and beyond the decal's range
+    assert coverage.dtype == np.uint8
+    assert np.all(coverage[:4] > 0.8 * 255)
+    assert np.all(coverage[4:] < 0.05 * 255)  # 0.6 m and 1 m beside it, and beyond the decal's range
     # Turned and moved, the same world line lands at the same world place.
     yaw = 0.9
     moved = draw_decal(
         lane_arrays((line,)), 20.0 - 10 * math.cos(yaw), 3.0 - 10 * math.sin(yaw), yaw, 150.0, 60.0, 0.08, 0.45
     )
-    assert float(moved.coverage(np.array([10.0]), np.array([0.0]))[0]) > 0.8
+    assert moved.coverage(np.array([10.0]), np.array([0.0]))[0] > 0.8 * 255

@@ -173,6 +173,20 @@ def test_same_seed_same_pair_other_seed_other_noise_same_truth() -> None:
     assert difference.std() == pytest.approx(1.5 * math.sqrt(2), rel=0.2)
 
 
+def test_images_are_the_renders_without_truth_and_noise_gain_scales_the_noise() -> None:
+    renderer = StereoRenderer(World(), RIG)
+    frame = renderer.render(POSE, np.random.default_rng(3))
+    left, right = renderer.images(POSE, np.random.default_rng(3))
+    np.testing.assert_array_equal(left, frame.left)
+    np.testing.assert_array_equal(right, frame.right)
+    clean, _ = renderer.images(POSE)
+    loud, _ = renderer.images(POSE, np.random.default_rng(4), noise_gain=4.0)
+    sky = frame.labels == LABEL_SKY  # mid-grey: no clipping
+    assert (loud[sky].astype(float) - clean[sky]).std() == pytest.approx(4 * 1.5, rel=0.1)
+    with pytest.raises(ValueError, match="noise_gain"):
+        renderer.images(POSE, np.random.default_rng(4), noise_gain=-1.0)
+
+
 def test_the_right_camera_is_a_little_brighter_and_offset() -> None:
     config = CameraConfig(right_gain=1.1, right_offset_dn=-5.0, noise_std_dn=0.0)
     frame = render_pair(World(), POSE, RIG, config=config)

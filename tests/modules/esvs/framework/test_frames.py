@@ -126,6 +126,31 @@ def test_a_reader_follows_a_writer_that_died_and_restarted(ring_name: str) -> No
         first.close(unlink=False)
 
 
+def test_the_pacing_reader_tells_the_writer_when_it_grabs(ring_name: str) -> None:
+    clock = FakeTime()
+    reader = RingReader(ring_name, now_ns=clock)
+    reader.trigger(100_000_000)  # not attached yet: nothing to tell
+    writer = RingWriter(ring_name, HEIGHT, WIDTH)
+    try:
+        assert writer.trigger() is None
+        reader.newest()  # attaches
+        reader.trigger(100_000_000)
+        assert writer.trigger() == (clock.t_ns, 100_000_000)
+        clock.advance(0.1)
+        reader.trigger(50_000_000)  # the round was retimed
+        assert writer.trigger() == (clock.t_ns, 50_000_000)
+        with pytest.raises(ValueError, match="period"):
+            reader.trigger(0)
+    finally:
+        reader.close()
+        writer.close()
+    again = RingWriter(ring_name, HEIGHT, WIDTH)
+    try:
+        assert again.trigger() is None  # a new ring starts untriggered
+    finally:
+        again.close()
+
+
 def test_a_new_writer_reclaims_a_dead_writers_ring_but_not_a_live_ones(ring_name: str) -> None:
     live = RingWriter(ring_name, HEIGHT, WIDTH)
     try:

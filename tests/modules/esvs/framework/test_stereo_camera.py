@@ -1,5 +1,6 @@
 """The simulated stereo camera: one rendered pair per new true pose into the frame ring, stamped
-with the pose's measurement time, with the scenario's camera faults applied."""
+with the pose's measurement time, with the scenario's camera faults applied; one frame per grab,
+just before it, while the ESVS triggers it, and its own frame rate while nothing does."""
 
 from __future__ import annotations
 
@@ -12,13 +13,13 @@ import pytest
 
 from modules.esvs.frames import Frame, RingReader, _attach
 from modules.sim.world import FaultKind, SensorFault, Shape, World, WorldObstacle
-from modules.stereo_camera.module import StereoCamera, StereoCameraConfig
+from modules.stereo_camera.module import FIRST_RENDER_S, MARGIN_S, StereoCamera, StereoCameraConfig
 from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import SimTruth
 from protocol.transport import MemTransport
 from rascal.bus import Bus
-from rascal.clock import ManualClock
+from rascal.clock import ManualClock, MasterClock
 from rascal.module import Runtime
 from tests.modules.esvs.framework.rings import ring_name_fixture
 
@@ -138,3 +139,81 @@ def test_a_bad_frame_rate_is_refused(ring_name: str) -> None:
     runtime = Runtime(Bus(MemTransport(uuid.uuid4().hex), 19, Keyring.generate(), clock), clock)
     with pytest.raises(ValueError, match="fps"):
         StereoCamera(StereoCameraConfig(ring_name=ring_name, fps=0.0), runtime, world=WORLD).on_start()
+
+
+class FakeMonotonic:
+    def __init__(self) -> None:
+        self.t_ns = 5_000_000_000
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+def test_the_exposures_follow_the_trigger_a_render_ahead_of_each_grab(
+    ring_name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock, monotonic = ManualClock(), FakeMonotonic()
+    runtime = Runtime(Bus(MemTransport(uuid.uuid4().hex), 19, Keyring.generate(), clock), clock)
+    camera = StereoCamera(StereoCameraConfig(ring_name=ring_name), runtime, world=WORLD, monotonic_ns=monotonic)
+    camera.on_start()
+    retimed: list[tuple[str, float, float | None]] = []
+    monkeypatch.setattr(
+        runtime, "set_period", lambda name, period_s, first_in_s=None: retimed.append((name, period_s, first_in_s))
+    )
+    reader = RingReader(ring_name, now_ns=monotonic)
+    try:
+        camera.phase()
+        assert not retimed and "free-running 15 fps" in camera.status_detail()
+        reader.newest()
+        reader.trigger(100_000_000)  # a grab now, one every 100 ms
+        monotonic.t_ns += 10_000_000
+        camera.phase()
+        # The next grab is in 90 ms; no frame made yet, so a render is taken to last FIRST_RENDER_S.
+        lead_s = FIRST_RENDER_S + MARGIN_S
+        assert retimed == [("tick", 0.1, pytest.approx(0.09 - lead_s))]
+        assert "triggered every 100 ms" in camera.status_detail()
+        camera.phase()
+        assert len(retimed) == 1  # on its grid: left alone
+        monotonic.t_ns += 40_000_000
+        reader.trigger(100_000_000)  # the round was moved 50 ms later
+        camera.phase()
+        assert retimed[-1] == ("tick", 0.1, pytest.approx(0.1 - lead_s))
+        monotonic.t_ns += 310_000_000  # three periods without a grab: the trigger is gone
+        camera.phase()
+        assert retimed[-1] == ("tick", 1 / 15, None) and "free-running" in camera.status_detail()
+    finally:
+        reader.close()
+        camera.on_stop()
+
+
+def test_triggered_the_camera_renders_one_fresh_frame_per_grab(bus_url: str, ring_name: str) -> None:
+    keyring, clock = Keyring.generate(), MasterClock()
+    runtime = Runtime(Bus.open(bus_url, source_id=19, clock=clock, keyring=keyring), clock)
+    camera = StereoCamera(StereoCameraConfig(ring_name=ring_name), runtime, world=WORLD, seed=3)
+    sim = Bus.open(bus_url, source_id=5, clock=clock, keyring=keyring)
+    reader = RingReader(ring_name)
+    grabs: list[tuple[int, int, int]] = []  # (sequence, exposure age ns, frames written by then)
+
+    def truth() -> None:
+        sim.publish(channels.SIM_TRUTH, SimTruth(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0), t_meas_ns=clock.now_ns())
+
+    def grab() -> None:
+        info = reader.newest()
+        reader.trigger(100_000_000)
+        if info is not None:
+            grabs.append((info.seq, clock.now_ns() - info.t_exposure_ns, camera.written))
+
+    runtime.add_task("truth", truth, 0.01)
+    runtime.add_task("grab", grab, 0.1, offset_s=0.035, priority=5)
+    try:
+        runtime.run(camera, 3.0)
+    finally:
+        reader.close()
+        sim.close()
+    steady = grabs[10:]  # a second to phase the exposures to the grabs
+    fresh = [age for (seq, age, _n), (before, _a, _m) in zip(steady[1:], steady, strict=False) if seq == before + 1]
+    assert len(fresh) >= 0.8 * (len(steady) - 1), grabs  # a new frame at (nearly) every grab ...
+    assert steady[-1][2] - steady[0][2] <= len(steady) + 1, grabs  # ... and hardly one more
+    # Made a render and a margin before the grab, from a pose at most a truth period older: far
+    # fresher than a free-running 15 fps camera's (which can be a whole frame older again).
+    assert sorted(fresh)[len(fresh) // 2] < 50_000_000, grabs
