@@ -14,6 +14,8 @@ Every ``round_period_s`` the round runs, in RASCAL's order (section III):
 
 The watchdog runs at the start of each round and at each further quarter round: a worker that
 crashed or hung is killed and replaced by its hot spare while the round and the heartbeat go on.
+Those quarter-round activations also send a report that has come in, rather than hold it for the
+next round's send step: obstacle-to-actuator latency is the ESVS's first consumer.
 """
 
 from __future__ import annotations
@@ -164,9 +166,10 @@ class Esvs(Module):
 
     def watch(self) -> None:
         """The watchdog's own activations between rounds: a dead worker is replaced within a
-        quarter round, and a worker that became free gets the grabbed frame now rather than a
-        round later."""
+        quarter round, a report that came in goes out now, and a worker that became free gets
+        the grabbed frame now rather than a round later."""
         self._supervise()
+        self._send()
         self._process()
 
     def _supervise(self) -> None:
