@@ -84,9 +84,9 @@ def split(scan: Scan, params: ClusterParams) -> list[Cluster]:
     """Consecutive returns (in bearing order) grouped by point distance; tiny groups dropped.
     The break distance grows with range so that an object far away, whose returns lie a ray
     spacing or more apart, is not shattered into single points."""
-    index, points = scan.points_sensor()
-    if not index.size:
+    if not scan.returns.size:
         return []
+    index, points = scan.points_sensor()
     ranges = scan.ranges_m[index]
     bearings = scan.bearings_rad[index]
     gaps = np.hypot(*np.diff(points, axis=0).T)

@@ -13,7 +13,7 @@ import numpy as np
 
 from modules.lidar.cluster import describe_scan
 from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profile_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, cast
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, add_noise, cast
 from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
@@ -80,7 +80,6 @@ class Lidar(Module):
         self.last_output: Output | None = None  # what STUCK repeats
         self.published = 0
         self.active_faults: tuple[FaultKind, ...] = ()
-        self.last_summary = ""
 
     def on_start(self) -> None:
         config = self.config
@@ -93,6 +92,10 @@ class Lidar(Module):
             self.world, self.seed = scenario.world, scenario.seed
         self.scene = Scene.from_obstacles(self.world.obstacles)
         self.spec = ScanSpec(range_noise_std_m=config.noise_std_m)
+        self.sweep_mount = replace(SWEEP_MOUNT, range_noise_std_m=config.noise_std_m)
+        vertical = VERTICAL_MOUNTS.get(config.sensor)
+        self.vertical_mount = replace(vertical, range_noise_std_m=config.noise_std_m) if vertical else None
+        self.entropy = [*_words(self.seed % 2**64), *_words(config.seed_offset % 2**64), SOURCE_IDS[config.sensor]]
         self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S)
         self.every(1.0 / config.rate_hz, self.sweep, priority=1)
 
@@ -131,24 +134,26 @@ class Lidar(Module):
         the same output however the process happens to be scheduled."""
         assert self.world is not None
         sensor = self.config.sensor
-        entropy = [self.seed % 2**64, self.config.seed_offset % 2**64, SOURCE_IDS[sensor], t_meas_ns % 2**64]
-        rng = np.random.default_rng(np.random.SeedSequence(entropy))
         pose = Pose2D(truth.east_m, truth.north_m, truth.yaw_rad)
         if sensor in HORIZONTAL_MOUNTS:
-            scan = cast(self.scene, pose, HORIZONTAL_MOUNTS[sensor], self.spec, rng, noise_scale)
-            obstacles = describe_scan(scan)
-            self.last_summary = f"{len(obstacles)} obstacles"
-            return ObstacleList(int(SENSORS[sensor]), int(Frame.VEHICLE), obstacles)
+            scan = cast(self.scene, pose, HORIZONTAL_MOUNTS[sensor], self.spec)
+            if scan.returns.size:  # nothing in view, nothing to draw: no generator either
+                add_noise(scan, self._rng(t_meas_ns), noise_scale)
+            return ObstacleList(int(SENSORS[sensor]), int(Frame.VEHICLE), describe_scan(scan))
+        rng = self._rng(t_meas_ns)
         if sensor == "lidar_sweep":
-            mount = replace(SWEEP_MOUNT, range_noise_std_m=self.config.noise_std_m)
-            returns = sweep_scan(self.world.hazards, self.scene, pose, mount, rng, noise_scale)
-            sweep = describe_sweep(returns, mount, int(SENSORS[sensor]))
-            self.last_summary = _sweep_summary(sweep)
-            return sweep
-        mount = replace(VERTICAL_MOUNTS[sensor], range_noise_std_m=self.config.noise_std_m)
-        profile = profile_scan(self.world.hazards, pose, mount, int(SENSORS[sensor]), rng, noise_scale)
-        self.last_summary = _hazard_summary(detect_hazards(profile))
-        return profile
+            returns = sweep_scan(self.world.hazards, self.scene, pose, self.sweep_mount, rng, noise_scale)
+            return describe_sweep(returns, self.sweep_mount, int(SENSORS[sensor]))
+        assert self.vertical_mount is not None
+        return profile_scan(self.world.hazards, pose, self.vertical_mount, int(SENSORS[sensor]), rng, noise_scale)
+
+    def _rng(self, t_meas_ns: int) -> np.random.Generator:
+        return np.random.default_rng(np.random.SeedSequence(self._entropy(t_meas_ns)))
+
+    def _entropy(self, t_meas_ns: int) -> np.ndarray:
+        """(seed, seed_offset, source id, t_meas_ns) as the 32-bit words SeedSequence makes of
+        that list itself: the same generator, without its slow conversion of Python ints."""
+        return np.array([*self.entropy, *_words(t_meas_ns % 2**64)], dtype=np.uint32)
 
     def _publish(self, message: Output, t_meas_ns: int) -> None:
         self.bus.publish(CHANNELS[self.config.sensor], message, t_meas_ns=t_meas_ns)
@@ -159,9 +164,27 @@ class Lidar(Module):
 
     def status_detail(self) -> str:
         faults = ",".join(kind.value for kind in self.active_faults)
-        return f"{self.config.sensor}: sent {self.published}; {self.last_summary}" + (
-            f"; fault {faults}" if faults else ""
-        )
+        summary = _summary(self.last_output) if self.last_output is not None else ""
+        return f"{self.config.sensor}: sent {self.published}; {summary}" + (f"; fault {faults}" if faults else "")
+
+
+def _words(value: int) -> list[int]:
+    """A non-negative int as SeedSequence splits it: 32-bit words, least significant first."""
+    words = [value & 0xFFFFFFFF]
+    value >>= 32
+    while value:
+        words.append(value & 0xFFFFFFFF)
+        value >>= 32
+    return words
+
+
+def _summary(output: Output) -> str:
+    """The heartbeat's account of a measurement (worked out once a second, not every scan)."""
+    if isinstance(output, ObstacleList):
+        return f"{len(output.obstacles)} obstacles"
+    if isinstance(output, GroundSweep):
+        return _sweep_summary(output)
+    return _hazard_summary(detect_hazards(output))
 
 
 def _hazard_summary(hazards: list[Hazard]) -> str:

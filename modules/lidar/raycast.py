@@ -10,6 +10,7 @@ and each ray keeps its nearest hit.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -64,8 +65,16 @@ class ScanSpec:
         return round(self.fov_rad / self.resolution_rad) + 1
 
     def bearings_rad(self) -> np.ndarray:
-        """Ray bearings in the sensor frame, right to left (SICK order), centred on the boresight."""
-        return np.linspace(-self.fov_rad / 2, self.fov_rad / 2, self.rays)
+        """Ray bearings in the sensor frame, right to left (SICK order), centred on the boresight
+        (one read-only array per spec: every scan shares it)."""
+        return _bearings(self.fov_rad, self.rays)
+
+
+@functools.lru_cache(maxsize=16)
+def _bearings(fov_rad: float, rays: int) -> np.ndarray:
+    bearings = np.linspace(-fov_rad / 2, fov_rad / 2, rays)
+    bearings.flags.writeable = False
+    return bearings
 
 
 # RASCAL's two horizontal SICKs sit at the front corners, each turned outward so that together
@@ -78,7 +87,8 @@ HORIZONTAL_MOUNTS: dict[str, Mount] = {
 
 @dataclass(frozen=True)
 class Scene:
-    """The obstacles as arrays (ENU), split by shape, built once per world."""
+    """The obstacles as arrays (ENU), split by shape, built once per world; and every obstacle's
+    bounding circle, cylinders first, so one pass finds the rays that may hit anything."""
 
     circle_xy: np.ndarray  # (n, 2) centres
     circle_r: np.ndarray
@@ -87,20 +97,32 @@ class Scene:
     box_half: np.ndarray  # (m, 2) half length, half width
     box_yaw: np.ndarray
     box_h: np.ndarray
+    bound_xy: np.ndarray  # (n + m, 2): circle_xy, then box_xy
+    bound_r: np.ndarray  # circle_r, then each box's half diagonal
+    bound_h: np.ndarray
 
     @classmethod
     def from_obstacles(cls, obstacles: tuple[WorldObstacle, ...] | list[WorldObstacle]) -> Scene:
         """The arrays for ``obstacles`` (any number, including none)."""
         circles = [o for o in obstacles if o.shape is Shape.CYLINDER]
         boxes = [o for o in obstacles if o.shape is Shape.BOX]
+        circle_xy = np.array([(o.east_m, o.north_m) for o in circles], dtype=float).reshape(-1, 2)
+        circle_r = np.array([o.radius_m for o in circles], dtype=float)
+        circle_h = np.array([o.height_m for o in circles], dtype=float)
+        box_xy = np.array([(o.east_m, o.north_m) for o in boxes], dtype=float).reshape(-1, 2)
+        box_half = np.array([(o.length_m / 2, o.width_m / 2) for o in boxes], dtype=float).reshape(-1, 2)
+        box_h = np.array([o.height_m for o in boxes], dtype=float)
         return cls(
-            circle_xy=np.array([(o.east_m, o.north_m) for o in circles], dtype=float).reshape(-1, 2),
-            circle_r=np.array([o.radius_m for o in circles], dtype=float),
-            circle_h=np.array([o.height_m for o in circles], dtype=float),
-            box_xy=np.array([(o.east_m, o.north_m) for o in boxes], dtype=float).reshape(-1, 2),
-            box_half=np.array([(o.length_m / 2, o.width_m / 2) for o in boxes], dtype=float).reshape(-1, 2),
+            circle_xy=circle_xy,
+            circle_r=circle_r,
+            circle_h=circle_h,
+            box_xy=box_xy,
+            box_half=box_half,
             box_yaw=np.array([o.yaw_rad for o in boxes], dtype=float),
-            box_h=np.array([o.height_m for o in boxes], dtype=float),
+            box_h=box_h,
+            bound_xy=np.concatenate((circle_xy, box_xy)),
+            bound_r=np.concatenate((circle_r, np.hypot(box_half[:, 0], box_half[:, 1]))),
+            bound_h=np.concatenate((circle_h, box_h)),
         )
 
 
@@ -113,9 +135,14 @@ class Scan:
     bearings_rad: np.ndarray
     ranges_m: np.ndarray
 
+    @functools.cached_property
+    def returns(self) -> np.ndarray:
+        """Indices of the rays with a return (range noise never takes one away)."""
+        return np.flatnonzero(np.isfinite(self.ranges_m))
+
     def points_sensor(self) -> tuple[np.ndarray, np.ndarray]:
         """(indices of the rays with a return, their (n, 2) points in the sensor frame)."""
-        index = np.flatnonzero(np.isfinite(self.ranges_m))
+        index = self.returns
         r, b = self.ranges_m[index], self.bearings_rad[index]
         return index, np.column_stack((r * np.cos(b), r * np.sin(b)))
 
@@ -140,13 +167,20 @@ def cast(
     spec = spec or ScanSpec()
     bearings = spec.bearings_rad()
     origin, yaw = sensor_pose(pose, mount)
-    ranges = ray_ranges(origin, yaw + bearings, scene, mount.z_m, spec.max_range_m)
-    if rng is not None and spec.range_noise_std_m * noise_scale > 0:
-        hit = np.isfinite(ranges)
-        ranges[hit] += rng.normal(0.0, spec.range_noise_std_m * noise_scale, int(hit.sum()))
+    scan = Scan(mount, spec, bearings, ray_ranges(origin, yaw + bearings, scene, mount.z_m, spec.max_range_m))
+    if rng is not None:
+        add_noise(scan, rng, noise_scale)
+    return scan
+
+
+def add_noise(scan: Scan, rng: np.random.Generator, noise_scale: float = 1.0) -> None:
+    """Gaussian range noise, ``range_noise_std_m * noise_scale``, on the scan's returns (in place;
+    a scan without returns draws nothing)."""
+    std = scan.spec.range_noise_std_m * noise_scale
+    hit = scan.returns
+    if std > 0 and hit.size:
         # Noise cannot put a return behind the scanner or past its limit.
-        ranges[hit] = np.clip(ranges[hit], 0.0, spec.max_range_m)
-    return Scan(mount, spec, bearings, ranges)
+        scan.ranges_m[hit] = np.clip(scan.ranges_m[hit] + rng.normal(0.0, std, hit.size), 0.0, scan.spec.max_range_m)
 
 
 def ray_ranges(
@@ -182,23 +216,28 @@ def _footprint_hits(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ray index, distance to the footprint's entry, obstacle height) of every ray that enters
     an obstacle taller than ``plane_height_m`` (inf distances where a pair misses)."""
-    rays, circles = _ray_pairs(
-        origin, angles_rad, scene.circle_xy, scene.circle_r, scene.circle_h, plane_height_m, max_range_m
+    rays, obstacles = _ray_pairs(
+        origin, angles_rad, scene.bound_xy, scene.bound_r, scene.bound_h, plane_height_m, max_range_m
     )
-    circle_t = _circle_hits(origin, angles_rad[rays], scene.circle_xy[circles], scene.circle_r[circles])
-    box_radius = np.hypot(scene.box_half[:, 0], scene.box_half[:, 1])
-    box_rays, boxes = _ray_pairs(origin, angles_rad, scene.box_xy, box_radius, scene.box_h, plane_height_m, max_range_m)
+    if not rays.size:
+        return rays, np.zeros(0), np.zeros(0)
+    is_box = obstacles >= len(scene.circle_r)
+    circle_rays, circles = rays[~is_box], obstacles[~is_box]
+    box_rays, boxes = rays[is_box], obstacles[is_box] - len(scene.circle_r)
+    circle_t = _circle_hits(origin, angles_rad[circle_rays], scene.circle_xy[circles], scene.circle_r[circles])
     box_t = _box_hits(origin, angles_rad[box_rays], scene.box_xy[boxes], scene.box_half[boxes], scene.box_yaw[boxes])
     return (
-        np.concatenate((rays, box_rays)),
+        np.concatenate((circle_rays, box_rays)),
         np.concatenate((circle_t, box_t)),
-        np.concatenate((scene.circle_h[circles], scene.box_h[boxes])),
+        scene.bound_h[np.concatenate((circles, boxes + len(scene.circle_r)))],
     )
 
 
 def _nearest(count: int, rays: np.ndarray, t: np.ndarray, max_range_m: float) -> np.ndarray:
     """Each ray's nearest hit among the (ray, distance) pairs; inf beyond ``max_range_m``."""
     nearest = np.full(count, np.inf)
+    if not rays.size:
+        return nearest
     np.minimum.at(nearest, rays, t)
     nearest[nearest > max_range_m] = np.inf
     return nearest
@@ -251,8 +290,7 @@ def _circle_hits(origin: np.ndarray, angles_rad: np.ndarray, centres: np.ndarray
     ox, oy = centres[:, 0] - origin[0], centres[:, 1] - origin[1]
     along = dx * ox + dy * oy  # distance along the ray to the foot of the centre
     disc = along**2 - (ox**2 + oy**2 - radii**2)
-    with np.errstate(invalid="ignore"):
-        t = along - np.sqrt(disc)
+    t = along - np.sqrt(np.maximum(disc, 0.0))  # a miss (disc < 0) is masked below
     return np.where((disc >= 0) & (t > 0), t, np.inf)
 
 

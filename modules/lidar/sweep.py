@@ -33,6 +33,8 @@ shrinks, as everywhere in the map.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -84,6 +86,47 @@ class SweepReturns(NamedTuple):
     slopes: np.ndarray  # each beam's fall per metre of horizontal travel
 
 
+class _Beams(NamedTuple):
+    """A mount's beams, worked out once per mount."""
+
+    bearings_rad: np.ndarray
+    flat_m: np.ndarray
+    slopes: np.ndarray
+    cos_depression: np.ndarray
+    sin_depression: np.ndarray
+
+
+@functools.lru_cache(maxsize=16)
+def _beams(mount: SweepMount) -> _Beams:
+    bearings = mount.bearings_rad()
+    flat = mount.flat_ranges_m(bearings)
+    slopes = mount.z_m / flat
+    depression = np.arctan(slopes)
+    beams = _Beams(bearings, flat, slopes, np.cos(depression), np.sin(depression))
+    for array in beams:
+        array.flags.writeable = False
+    return beams
+
+
+class _Circles(NamedTuple):
+    """The hazards' bounding circles as arrays (ENU centres, radii), made once per hazard set."""
+
+    east_m: np.ndarray
+    north_m: np.ndarray
+    radius_m: np.ndarray
+    depth_bound_m: float  # no ground lies lower than this below the plane: all magnitudes summed
+
+
+@functools.lru_cache(maxsize=16)
+def _circles(hazards: tuple[TerrainHazard, ...]) -> _Circles:
+    return _Circles(
+        np.array([hazard.east_m for hazard in hazards], dtype=float),
+        np.array([hazard.north_m for hazard in hazards], dtype=float),
+        np.array([math.hypot(hazard.length_m, hazard.width_m) / 2 for hazard in hazards], dtype=float),
+        sum(abs(hazard.magnitude_m) for hazard in hazards),
+    )
+
+
 def sweep_scan(
     hazards: tuple[TerrainHazard, ...] | list[TerrainHazard],
     scene: Scene,
@@ -93,32 +136,33 @@ def sweep_scan(
     noise_scale: float = 1.0,
 ) -> SweepReturns:
     """Every beam's first hit from ``mount`` on a vehicle at ``pose``."""
-    bearings = mount.bearings_rad()
-    flat = mount.flat_ranges_m(bearings)
-    slopes = mount.z_m / flat
+    beams = _beams(mount)
+    bearings, flat, slopes = beams.bearings_rad, beams.flat_m, beams.slopes
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     origin = np.array((pose.east_m + c * mount.x_m - s * mount.y_m, pose.north_m + s * mount.x_m + c * mount.y_m))
     angles = pose.yaw_rad + bearings
     distance, height = flat.copy(), np.zeros_like(flat)
-    terrain_distance, terrain_height = _terrain_hits(hazards, origin, angles, mount.z_m, slopes, flat)
-    sampled = np.isfinite(terrain_distance)
-    distance[sampled], height[sampled] = terrain_distance[sampled], terrain_height[sampled]
-    obstacle = descending_ray_ranges(origin, angles, mount.z_m, slopes, scene, mount.max_range_m)
+    if hazards:
+        terrain_distance, terrain_height = _terrain_hits(tuple(hazards), origin, angles, mount.z_m, slopes, flat)
+        sampled = np.isfinite(terrain_distance)
+        distance[sampled], height[sampled] = terrain_distance[sampled], terrain_height[sampled]
+    # An obstacle beyond every beam's ground hit cannot be nearer than it: look no farther.
+    reach = min(mount.max_range_m, float(distance.max()))
+    obstacle = descending_ray_ranges(origin, angles, mount.z_m, slopes, scene, reach)
     nearer = obstacle < distance
     distance[nearer] = obstacle[nearer]
     height[nearer] = mount.z_m - slopes[nearer] * obstacle[nearer]
     if rng is not None and mount.range_noise_std_m * noise_scale > 0:
         noise = rng.normal(0.0, mount.range_noise_std_m * noise_scale, len(bearings))
-        depression = np.arctan(slopes)
-        distance = distance + noise * np.cos(depression)
-        height = height - noise * np.sin(depression)
+        distance = distance + noise * beams.cos_depression
+        height = height - noise * beams.sin_depression
     out_of_range = np.hypot(distance, mount.z_m - height) > mount.max_range_m
     distance[out_of_range], height[out_of_range] = np.nan, np.nan
     return SweepReturns(bearings, distance, height, slopes)
 
 
 def _terrain_hits(
-    hazards: tuple[TerrainHazard, ...] | list[TerrainHazard],
+    hazards: tuple[TerrainHazard, ...],
     origin: np.ndarray,
     angles_rad: np.ndarray,
     height_m: float,
@@ -128,26 +172,31 @@ def _terrain_hits(
     """Hits on the terrain hazards for the beams that cross one's bounding circle before they
     would meet flat ground beyond it (inf elsewhere: those beams meet flat ground at ``flat_m``)."""
     count = len(angles_rad)
-    enter, leave = np.full(count, np.inf), np.full(count, -np.inf)
+    distance, height = np.full(count, np.inf), np.full(count, np.nan)
+    circles = _circles(hazards)
     dx, dy = np.cos(angles_rad), np.sin(angles_rad)
-    for hazard in hazards:
-        ox, oy = hazard.east_m - origin[0], hazard.north_m - origin[1]
-        along = dx * ox + dy * oy
-        radius = math.hypot(hazard.length_m, hazard.width_m) / 2
-        disc = along**2 - (ox * ox + oy * oy - radius * radius)
-        root = np.sqrt(np.maximum(disc, 0.0))
-        crosses = (disc > 0) & (along + root > 0)
-        enter = np.where(crosses, np.minimum(enter, np.maximum(along - root, 0.0)), enter)
-        leave = np.where(crosses, np.maximum(leave, along + root), leave)
+    ox, oy = circles.east_m - origin[0], circles.north_m - origin[1]
+    along = dx * ox[:, None] + dy * oy[:, None]  # (hazards, beams)
+    disc = along**2 - (ox * ox + oy * oy - circles.radius_m**2)[:, None]
+    root = np.sqrt(np.maximum(disc, 0.0))
+    near_edge = np.maximum(along - root, 0.0)
+    # Past the depth bound a beam is below any ground, so it hit something before: a circle
+    # that begins there (with a metre for the sample spacing) cannot matter.
+    reach = (height_m + circles.depth_bound_m) / slopes + 1.0
+    crosses = (disc > 0) & (along + root > 0) & (near_edge < reach)
+    if not crosses.any():
+        return distance, height
+    enter = np.where(crosses, near_edge, np.inf).min(axis=0)
+    leave = np.where(crosses, along + root, -np.inf).max(axis=0)
     # A beam that has met flat ground before a hazard's circle never reaches it.
     rows = np.flatnonzero((leave > enter) & (enter < flat_m))
-    distance, height = np.full(count, np.inf), np.full(count, np.nan)
     if not len(rows):
         return distance, height
+    crossed = [hazard for hazard, any_beam in zip(hazards, crosses.any(axis=1), strict=True) if any_beam]
     span = leave[rows] - enter[rows]
     samples = int(min(MAX_SAMPLES, math.ceil(float(span.max()) / GROUND_STEP_M) + 1))
     along = enter[rows, None] + span[:, None] * np.linspace(0.0, 1.0, samples)
-    ground = ground_height(hazards, origin[0] + dx[rows, None] * along, origin[1] + dy[rows, None] * along)
+    ground = ground_height(crossed, origin[0] + dx[rows, None] * along, origin[1] + dy[rows, None] * along)
     hit_distance, hit_height = first_hits(along, ground, height_m, slopes[rows])
     # A beam still above the ground where the circle ends goes on to flat ground (or already
     # came down in it, if it was below the plane at the circle's edge: the first sample).
@@ -173,26 +222,33 @@ def describe_sweep(
     kind = np.where(z < -step_m, LOW, np.where(z > step_m, HIGH, LEVEL))
     # Where a low beam met the plane: the ground beyond lay below it, so the drop began nearer.
     met = mount.x_m + mount.z_m / returns.slopes * np.cos(b)
-    stretches: list[GroundStretch] = []
-    index = np.flatnonzero(np.isfinite(t))
-    start = 0
-    while start < len(index):
-        end = start
-        while (
-            end + 1 < len(index)
-            and index[end + 1] == index[end] + 1
-            and kind[index[end + 1]] == kind[index[start]]
-            and (kind[index[start]] == LEVEL or y[index[end + 1]] - y[index[start]] <= max_piece_m)
-        ):
-            end += 1
-        run = index[start : end + 1]
-        stretches.append(_stretch(run, int(kind[run[0]]), x, y, z, met, reach))
-        start = end + 1
-    return GroundSweep(sensor, tuple(stretches))
+    runs = _runs(np.isfinite(t), kind, y.tolist(), max_piece_m)
+    return GroundSweep(sensor, tuple(_stretch(run, int(kind[run.start]), x, y, z, met, reach) for run in runs))
+
+
+def _runs(valid: np.ndarray, kind: np.ndarray, y: list[float], max_piece_m: float) -> list[slice]:
+    """Consecutive valid beams of one kind, right to left; low and high runs cut into pieces
+    at most ``max_piece_m`` across (each piece starts a new one where it would grow wider)."""
+    edges = np.flatnonzero((np.diff(valid) != 0) | (np.diff(kind) != 0)) + 1
+    bounds = [0, *edges.tolist(), len(valid)]
+    runs = []
+    for start, stop in itertools.pairwise(bounds):
+        if not valid[start]:
+            continue
+        if kind[start] == LEVEL:
+            runs.append(slice(start, stop))
+            continue
+        piece = start
+        for beam in range(start + 1, stop):
+            if y[beam] - y[piece] > max_piece_m:
+                runs.append(slice(piece, beam))
+                piece = beam
+        runs.append(slice(piece, stop))
+    return runs
 
 
 def _stretch(
-    run: np.ndarray,
+    run: slice,
     kind: int,
     x: np.ndarray,
     y: np.ndarray,

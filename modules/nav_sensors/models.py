@@ -26,6 +26,7 @@ height, roll or pitch). The IMU body frame is x forward, y left, z up.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ from typing import Generic, NamedTuple, Protocol, TypeVar
 import numpy as np
 import pymap3d
 
-from brain.corridor import GeodeticOrigin
+from brain.corridor import WGS84, GeodeticOrigin
 from modules.sim.world import FaultKind, SensorFault, World
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, WheelSpeed
 from rascal.angles import wrap_angle
@@ -87,15 +88,20 @@ class GaussMarkov:
             raise ValueError("Gauss-Markov process: sigma must be >= 0 and correlation time > 0")
         self.sigma = sigma
         self.correlation_s = correlation_s
-        self.value = np.zeros(axes)
+        self.values = [0.0] * axes  # plain floats: three-element numpy arithmetic costs more than it does
         self._rng = rng
 
-    def step(self, dt_s: float) -> np.ndarray:
+    @property
+    def value(self) -> np.ndarray:
+        return np.array(self.values)
+
+    def step(self, dt_s: float) -> list[float]:
         """Advance by ``dt_s`` seconds (exact discretisation, any step size) and return the value."""
         phi = math.exp(-dt_s / self.correlation_s)
         drive = self.sigma * math.sqrt(1.0 - phi * phi)
-        self.value = phi * self.value + drive * self._rng.standard_normal(self.value.shape)
-        return self.value
+        normals = self._rng.standard_normal(len(self.values)).tolist()
+        self.values = [phi * value + drive * normal for value, normal in zip(self.values, normals, strict=True)]
+        return self.values
 
 
 class FaultEffect(NamedTuple):
@@ -120,16 +126,22 @@ def fault_effect(schedule: World, sensor: str, t_s: float, progress_m: float) ->
     )
 
 
+NO_FAULT = fault_effect(World(), "", 0.0, 0.0)
+
+
 class _Sensor(Generic[M]):
     """Fault schedule lookup and the output gate (silence, stuck) shared by every model."""
 
     def __init__(self, name: str, faults: Sequence[SensorFault]) -> None:
         self.name = name
-        self._schedule = World(faults=tuple(faults))
+        # Only this sensor's faults: most sensors have none, and then every sample is clear.
+        self._schedule = World(faults=tuple(fault for fault in faults if name in fault.sensors))
         self._last: M | None = None
         self._prev_t_ns: int | None = None
 
     def _effect(self, truth: TruthState, t_s: float) -> FaultEffect:
+        if not self._schedule.faults:
+            return NO_FAULT
         return fault_effect(self._schedule, self.name, t_s, truth.progress_m)
 
     def _elapsed_s(self, t_ns: int) -> float | None:
@@ -226,20 +238,61 @@ class ImuModel(_Sensor[ImuSample]):
             long_accel = (truth.speed_mps - self._prev_speed_mps) / dt_s
         self._prev_speed_mps = truth.speed_mps
         effect = self._effect(truth, t_s)
-        noise = self._rng.standard_normal(6) * effect.noise_scale
-        accel = (
-            np.array([long_accel, truth.speed_mps * truth.yaw_rate_radps, self.params.gravity_mps2])
-            + self.accel_bias_mps2
-            + noise[:3] * self.accel_noise_mps2
+        noise = (self._rng.standard_normal(6) * effect.noise_scale).tolist()
+        true_accel = (long_accel, truth.speed_mps * truth.yaw_rate_radps, self.params.gravity_mps2)
+        true_rate = (0.0, 0.0, truth.yaw_rate_radps)
+        accel = _biased(
+            true_accel, self._accel_bias0.tolist(), self._accel_drift.values, noise[:3], self.accel_noise_mps2
         )
-        gyro = np.array([0.0, 0.0, truth.yaw_rate_radps]) + self.gyro_bias_radps + noise[3:] * self.gyro_noise_radps
-        return self._emit(effect, ImuSample(*(float(v) for v in accel), *(float(v) for v in gyro)))
+        gyro = _biased(true_rate, self._gyro_bias0.tolist(), self._gyro_drift.values, noise[3:], self.gyro_noise_radps)
+        return self._emit(effect, ImuSample(*accel, *gyro))
+
+
+def _biased(
+    true: Sequence[float], bias0: Sequence[float], drift: Sequence[float], noise: Sequence[float], noise_std: float
+) -> list[float]:
+    """Per axis: truth + (turn-on bias + drift) + noise * its std."""
+    return [t + (b + d) + n * noise_std for t, b, d, n in zip(true, bias0, drift, noise, strict=True)]
 
 
 def enu_to_geodetic(origin: GeodeticOrigin, east_m: float, north_m: float, up_m: float) -> tuple[float, float, float]:
-    """(lat_deg, lon_deg, alt_m) of a point given in the ENU frame of ``origin`` (WGS84)."""
-    lat, lon, alt = pymap3d.enu2geodetic(east_m, north_m, up_m, origin.lat_deg, origin.lon_deg, origin.alt_m)
-    return float(lat), float(lon), float(alt)
+    """(lat_deg, lon_deg, alt_m) of a point given in the ENU frame of ``origin`` (WGS84): what
+    pymap3d.enu2geodetic computes, in scalar ``math`` (pymap3d's array code costs ~100 us a fix)."""
+    x0, y0, z0, sin_lat, cos_lat, sin_lon, cos_lon = _enu_frame(origin)
+    t = cos_lat * up_m - sin_lat * north_m
+    w = sin_lat * up_m + cos_lat * north_m
+    u = cos_lon * t - sin_lon * east_m
+    v = sin_lon * t + cos_lon * east_m
+    return _ecef_to_geodetic(x0 + u, y0 + v, z0 + w)
+
+
+@functools.lru_cache(maxsize=8)
+def _enu_frame(origin: GeodeticOrigin) -> tuple[float, float, float, float, float, float, float]:
+    """The origin in ECEF and the sines and cosines of its latitude and longitude."""
+    x0, y0, z0 = pymap3d.geodetic2ecef(origin.lat_deg, origin.lon_deg, origin.alt_m)
+    lat, lon = math.radians(origin.lat_deg), math.radians(origin.lon_deg)
+    return float(x0), float(y0), float(z0), math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+
+
+def _ecef_to_geodetic(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """WGS84 latitude and longitude (degrees) and height of an ECEF point, by You (2000), the
+    closed form pymap3d.ecef2geodetic uses."""
+    a, b = WGS84.semimajor_axis, WGS84.semiminor_axis
+    e2 = a * a - b * b
+    r2 = x * x + y * y + z * z
+    u = math.sqrt(0.5 * (r2 - e2) + 0.5 * math.hypot(r2 - e2, 2 * math.sqrt(e2) * z))
+    hxy = math.hypot(x, y)
+    hue = math.hypot(u, math.sqrt(e2))
+    if u == 0.0 or hxy == 0.0:  # the centre or a pole
+        beta = 0.0 if z == 0.0 else math.copysign(math.pi / 2, z)
+    else:
+        beta = math.atan(hue / u * z / hxy)
+        beta += ((b * u - a * hue + e2) * math.sin(beta)) / (a * hue / math.cos(beta) - e2 * math.cos(beta))
+    lat = math.atan(a / b * math.tan(beta))
+    alt = math.hypot(z - b * math.sin(beta), hxy - a * math.cos(beta))
+    if (x * x + y * y) / (a * a) + z * z / (b * b) < 1:
+        alt = -alt
+    return math.degrees(lat), math.degrees(math.atan2(y, x)), alt
 
 
 @dataclass(frozen=True)
@@ -287,19 +340,25 @@ class GpsModel(_Sensor[GpsFix]):
         if dt_s is not None:
             self._wander.step(dt_s)
         effect = self._effect(truth, t_s)
-        error = self._wander.value * self._wander_std_m
-        error = error + self._rng.standard_normal(3) * self._noise_m * effect.noise_scale
-        east, north, up = np.array([truth.east_m, truth.north_m, 0.0]) + error + self._jump_offset(effect)
-        lat, lon, alt = enu_to_geodetic(self.origin, float(east), float(north), float(up))
+        normals = (self._rng.standard_normal(3) * self._noise_m * effect.noise_scale).tolist()
+        wander = (self._wander.value * self._wander_std_m).tolist()
+        east, north, up = (
+            position + (drift + noise) + jump
+            for position, drift, noise, jump in zip(
+                (truth.east_m, truth.north_m, 0.0), wander, normals, self._jump_offset(effect), strict=True
+            )
+        )
+        lat, lon, alt = enu_to_geodetic(self.origin, east, north, up)
         fix = GpsFix(lat, lon, alt, *self._std_m, int(NavQuality.DGPS), self.params.satellites)
         return self._emit(effect, fix)
 
-    def _jump_offset(self, effect: FaultEffect) -> np.ndarray:
-        offset = np.zeros(3)
+    def _jump_offset(self, effect: FaultEffect) -> tuple[float, float, float]:
+        east, north = 0.0, 0.0
         for fault in effect.jumps:
             direction = self._jump_direction_rad[fault]
-            offset[:2] += fault.magnitude * np.array([math.cos(direction), math.sin(direction)])
-        return offset
+            east += fault.magnitude * math.cos(direction)
+            north += fault.magnitude * math.sin(direction)
+        return east, north, 0.0
 
 
 @dataclass(frozen=True)

@@ -4,14 +4,20 @@ measures (modules/referee/measures.py) as JSON when it stops.
 Simulation only, like the simulator: it reads the truth the stack never sees. It writes to
 ``out``, or, when that is empty, to ``drive.json`` in ``$RASCAL_RUN_DIR`` (set by ``rascal run``
 for every module it starts).
+
+Neither the truth (100 Hz) nor the paths wake it: what arrived is judged once a second, when it
+writes (and for its heartbeat), in the order it arrived.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
+from operator import itemgetter
 from pathlib import Path
+from typing import Any
 
 from modules.referee.measures import Referee as Measures
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
@@ -47,18 +53,30 @@ class Referee(Module):
 
     def on_start(self) -> None:
         self.measures = Measures(load_scenario(self.config.scenario))
-        self.bus.subscribe(channels.SIM_TRUTH, self.on_truth)
-        self.bus.subscribe(channels.PATH, self.on_path)
+        self.arrivals: list[tuple[int, Callable[[Any], None], Any]] = []
+        # Judged when the referee next looks, not as they come: neither stream needs it awake
+        # (truth alone would wake it 100 times a second). Their arrival times keep the order.
+        self.bus.subscribe(channels.SIM_TRUTH, self.on_truth, wake=False)
+        self.bus.subscribe(channels.PATH, self.on_path, wake=False)
         self.every(SUMMARY_PERIOD_S, self.write, priority=1)
 
-    def on_truth(self, truth: SimTruth, _envelope: Envelope) -> None:
-        self.measures.on_truth(truth)
+    def on_truth(self, truth: SimTruth, envelope: Envelope) -> None:
+        self.arrivals.append((envelope.recv_ns, self.measures.on_truth, truth))
 
-    def on_path(self, path: PlannedPath, _envelope: Envelope) -> None:
-        self.measures.on_path(path)
+    def on_path(self, path: PlannedPath, envelope: Envelope) -> None:
+        self.arrivals.append((envelope.recv_ns, self.measures.on_path, path))
+
+    def judge(self) -> None:
+        """Feed the measures what arrived since the last call, in order of arrival (each socket
+        is read in turn, so handlers see the two channels' messages in batches)."""
+        self.arrivals.sort(key=itemgetter(0))
+        for _recv_ns, feed, message in self.arrivals:
+            feed(message)
+        self.arrivals.clear()
 
     def write(self) -> None:
         """Written every second, not only at the end: a killed referee leaves its last word."""
+        self.judge()
         if self.out is not None:
             tmp = self.out.with_suffix(".tmp")
             tmp.write_text(json.dumps(self.measures.result().as_dict(), indent=2))
@@ -68,6 +86,7 @@ class Referee(Module):
         self.write()
 
     def status_detail(self) -> str:
+        self.judge()
         r = self.measures.result()
         return (
             f"{100 * r.completion:.1f} % in {r.time_s:.0f} s, {r.mean_speed_mps:.1f} m/s "

@@ -17,6 +17,7 @@ import numpy as np
 from modules.sim.collision import collides, footprint
 from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from modules.sim.vehicle import VehicleParams, VehicleState, step
+from modules.sim.world import WorldObstacle
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, Severity, SimTruth
@@ -29,6 +30,7 @@ PARKED = ActuatorCommand(throttle=0.0, brake=1.0, steering_rad=0.0, stop_reason=
 # vehicle moved. Longer gaps (a stopped process) are not caught up.
 MAX_CATCH_UP_S = 0.2
 PROGRESS_SEARCH_M = 60  # route points searched around the last match each step
+WATCH_SLACK_M = 1e-6  # for rounding: a watched answer is asked again this much before it could change
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,9 @@ class Simulator(Module):
         self.command = PARKED
         self.dt_s = 1.0 / self.config.rate_hz
         self.last_tick_ns: int | None = None
-        self.bus.subscribe(channels.ACTUATOR_COMMAND, self.on_command)
+        # Read when the next tick's wait ends, as the tick only uses the newest command: a command
+        # need not wake the simulator between ticks.
+        self.bus.subscribe(channels.ACTUATOR_COMMAND, self.on_command, wake=False)
         self.every(self.dt_s, self.tick, priority=5)
 
     def on_command(self, command: ActuatorCommand, _envelope: Envelope) -> None:
@@ -81,6 +85,24 @@ class Simulator(Module):
         )
 
 
+class Watch:
+    """When a yes/no question about the footprint can next change its answer. Its measure (the
+    corridor clearance, the gap to the obstacles) changes no faster than the footprint moves, so
+    after an evaluation that left ``margin_m`` between it and the answer's edge, the answer stands
+    until the footprint has moved that far."""
+
+    def __init__(self) -> None:
+        self.margin_m = 0.0
+        self.moved_m = 0.0
+
+    def due(self) -> bool:
+        return self.moved_m >= self.margin_m
+
+    def evaluated(self, margin_m: float) -> None:
+        self.margin_m = margin_m - WATCH_SLACK_M
+        self.moved_m = 0.0
+
+
 class WorldState:
     """The vehicle in the scenario, stepped without any I/O (so tests and benchmarks drive it)."""
 
@@ -102,25 +124,69 @@ class WorldState:
         self._touching: str | None = None
         self._outside = False
         self.elapsed_s = 0.0
+        # Every point of the footprint lies within this of the rear axle, so a turn by an angle
+        # moves none of them farther than this times the angle.
+        self._reach_m = math.hypot(
+            max(params.length_m - params.rear_overhang_m, params.rear_overhang_m), params.width_m / 2
+        )
+        self._obstacle_xy = np.array([(o.east_m, o.north_m) for o in self.obstacles], dtype=float).reshape(-1, 2)
+        # Within these of an obstacle's centre, collides() looks closer (its prefilter).
+        half_diagonal = 0.5 * math.hypot(params.length_m, params.width_m)
+        self._obstacle_limit_m = half_diagonal + np.array(
+            [o.radius_m + 0.5 * (o.length_m + o.width_m) for o in self.obstacles], dtype=float
+        )
+        self._corridor_watch = Watch()
+        self._obstacle_watch = Watch()
 
     def advance(self, command: ActuatorCommand, dt_s: float) -> list[tuple[str, str]]:
         """One step; returns the events that began in it as (code, text)."""
-        step(self.state, command, dt_s, self.params)
+        state = self.state
+        east, north, yaw = state.east_m, state.north_m, state.yaw_rad
+        step(state, command, dt_s, self.params)
+        moved = math.hypot(state.east_m - east, state.north_m - north) + self._reach_m * abs(
+            math.remainder(state.yaw_rad - yaw, math.tau)
+        )
+        self._corridor_watch.moved_m += moved
+        self._obstacle_watch.moved_m += moved
         self.elapsed_s += dt_s
         self._update_progress()
         events = []
-        hit = collides(self.state, self.obstacles, self.params)
+        hit = self._collision()
         if hit is not None and hit.name != self._touching:
             self.collisions += 1
-            events.append(("collision", f"hit {hit.name} at {self.progress_m:.0f} m, {self.state.speed_mps:.1f} m/s"))
+            events.append(("collision", f"hit {hit.name} at {self.progress_m:.0f} m, {state.speed_mps:.1f} m/s"))
         self._touching = hit.name if hit is not None else None
-        corners = np.array(footprint(self.state, self.params).corners())
-        outside = not bool(np.all(self.corridor.contains(corners[:, 0], corners[:, 1])))
+        outside = self._outside_corridor()
         if outside and not self._outside:
             self.corridor_exits += 1
             events.append(("corridor_exit", f"left the corridor at {self.progress_m:.0f} m"))
         self._outside = outside
         return events
+
+    def _collision(self) -> WorldObstacle | None:
+        """collides(), asked only when the footprint may have come within its prefilter's reach
+        of an obstacle since it was last farther than that from all of them."""
+        watch = self._obstacle_watch
+        if not watch.due():
+            return None
+        state = self.state
+        centre = footprint(state, self.params)
+        gaps = np.hypot(self._obstacle_xy[:, 0] - centre.east_m, self._obstacle_xy[:, 1] - centre.north_m)
+        gap = float((gaps - self._obstacle_limit_m).min()) if len(gaps) else math.inf
+        watch.evaluated(gap)
+        return collides(state, self.obstacles, self.params) if gap <= 0.0 else None
+
+    def _outside_corridor(self) -> bool:
+        """Whether a footprint corner is outside the corridor, evaluated only when the answer may
+        have changed: the corridor's edge distance is the watched measure."""
+        watch = self._corridor_watch
+        if not watch.due():
+            return self._outside
+        corners = np.array(footprint(self.state, self.params).corners())
+        clearance = self.corridor.distance_to_edge(corners[:, 0], corners[:, 1])
+        nearest = float(clearance.min())
+        watch.evaluated(abs(nearest))
+        return nearest < 0.0
 
     def truth(self) -> SimTruth:
         s = self.state

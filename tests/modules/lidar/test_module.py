@@ -8,6 +8,7 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import pytest
 
 from modules.lidar import module as lidar_module
@@ -204,3 +205,11 @@ def test_bad_configuration_is_refused(key: str, value: Any) -> None:
     runtime = Runtime(Bus(MemTransport(uuid.uuid4().hex), 21, Keyring.generate(), clock), clock)
     with pytest.raises(ValueError, match="lidar"):
         Lidar(LidarConfig(**{key: value}), runtime, world=WORLD).on_start()
+
+
+@pytest.mark.parametrize("t_meas_ns", [0, 1, 2**32 - 1, 2**32, 1_733_280_000_123_456_789, 2**64 - 1])
+def test_the_noise_generator_is_seeded_with_the_documented_entropy(t_meas_ns: int) -> None:
+    lidar = make("lidar_v_left", seed=2**40 + 5, seed_offset=3).lidar
+    documented = np.random.SeedSequence([2**40 + 5, 3, SOURCE_IDS["lidar_v_left"], t_meas_ns])
+    expected = np.random.default_rng(documented).normal(size=8)
+    np.testing.assert_array_equal(np.random.default_rng(lidar._entropy(t_meas_ns)).normal(size=8), expected)

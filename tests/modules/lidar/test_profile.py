@@ -7,7 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, VerticalMount, detect_hazards, ground_height, profile_scan
+from modules.lidar.profile import (
+    VERTICAL_MOUNTS,
+    Hazard,
+    VerticalMount,
+    detect_hazards,
+    first_hits,
+    ground_height,
+    profile_scan,
+)
 from modules.lidar.raycast import Pose2D
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import Sensor, SurfaceProfile
@@ -131,3 +139,38 @@ def test_the_two_vertical_lidars_look_down_either_side() -> None:
     left_only = [crossing(HazardKind.DITCH, 7.0, 3.0, 0.5, lateral_m=0.6, width_m=0.6)]
     assert len(detect_hazards(profile_scan(left_only, POSE, VERTICAL_MOUNTS["lidar_v_left"], 3))) == 1
     assert detect_hazards(profile_scan(left_only, POSE, VERTICAL_MOUNTS["lidar_v_right"], 4)) == []
+
+
+def traced_everywhere(hazards: list[TerrainHazard], mount: VerticalMount = MOUNT) -> SurfaceProfile:
+    """The profile with every beam traced through every ground sample out to the last: what
+    profile_scan finds by tracing only the samples around the hazards."""
+    depressions = mount.depressions_rad()
+    reach = mount.max_range_m * math.cos(depressions[-1])
+    along = np.arange(0.0, reach + 0.05, 0.05)
+    c, s = math.cos(POSE.yaw_rad), math.sin(POSE.yaw_rad)
+    east = POSE.east_m + c * mount.x_m - s * mount.y_m
+    north = POSE.north_m + s * mount.x_m + c * mount.y_m
+    ground = ground_height(hazards, east + c * along, north + s * along)
+    distance, height = first_hits(along, ground, mount.z_m, np.tan(depressions))
+    hit = np.isfinite(distance) & (np.hypot(distance, mount.z_m - height) <= mount.max_range_m)
+    return SurfaceProfile(
+        int(Sensor.LIDAR_V_LEFT), mount.y_m, tuple((mount.x_m + distance[hit]).tolist()), tuple(height[hit].tolist())
+    )
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_tracing_only_around_the_hazards_finds_what_tracing_everywhere_does(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    kinds = (HazardKind.DITCH, HazardKind.BERM, HazardKind.DROP_OFF)
+    hazards = [
+        crossing(
+            kinds[int(rng.integers(3))],
+            float(rng.uniform(-5.0, 30.0)),
+            float(rng.uniform(0.5, 12.0)),
+            float(rng.uniform(0.1, 1.5)),
+            lateral_m=float(rng.uniform(-3.0, 3.0)),
+            width_m=float(rng.uniform(0.5, 10.0)),
+        )
+        for _ in range(int(rng.integers(0, 4)))
+    ]
+    assert scan(hazards) == traced_everywhere(hazards)

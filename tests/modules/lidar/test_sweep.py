@@ -124,3 +124,11 @@ def test_first_hits_per_beam_samples_agree_with_shared_ones() -> None:
     own = first_hits(np.tile(along, (len(slopes), 1)), np.tile(ground, (len(slopes), 1)), 1.6, slopes)
     np.testing.assert_array_equal(shared[0], own[0])
     np.testing.assert_array_equal(shared[1], own[1])
+
+
+def test_a_hazard_beyond_any_beams_reach_changes_nothing() -> None:
+    # The scenario's berm 500 m on, in line with one beam, once stretched the ground samples of
+    # every beam across the wash to that beam's 500 m (and a sweep to 20 ms).
+    wash = TerrainHazard("wash", HazardKind.DITCH, LINE_M, 0.0, 0.0, **WASH)
+    far_berm = TerrainHazard("berm", HazardKind.BERM, LINE_M + 500.0, 0.0, math.pi / 2, 6.0, 3.0, 0.6)
+    assert sweep([wash, far_berm]) == sweep([wash])

@@ -156,6 +156,21 @@ def test_enu_to_geodetic_and_back_round_trips_within_a_millimetre(
     assert np.all(np.abs(np.array(back) - [east, north, up]) < 1e-3)
 
 
+@given(
+    lat=st.floats(-89.9, 89.9),
+    lon=st.floats(-180, 180),
+    east=st.floats(-50_000, 50_000),
+    north=st.floats(-50_000, 50_000),
+    up=st.floats(-200, 200),
+)
+def test_enu_to_geodetic_is_pymap3ds_conversion(lat: float, lon: float, east: float, north: float, up: float) -> None:
+    origin = GeodeticOrigin(lat, lon, 100.0)
+    expected = pymap3d.enu2geodetic(east, north, up, origin.lat_deg, origin.lon_deg, origin.alt_m)
+    lat_deg, lon_deg, alt_m = enu_to_geodetic(origin, east, north, up)
+    assert abs(lat_deg - expected[0]) < 1e-11 and abs(alt_m - expected[2]) < 1e-6
+    assert abs(math.remainder(lon_deg - expected[1], 360.0)) < 1e-11
+
+
 def test_gps_outage_publishes_nothing_in_its_window_and_resumes_after() -> None:
     outage = SensorFault(("gps",), FaultKind.OUTAGE, start_s=2.0, end_s=4.0)
     gps = GpsModel(GpsParams(), ORIGIN, rng(), faults=(outage,))

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import itertools
+import math
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from modules.sim.collision import collides, footprint
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.simulator import SimConfig, Simulator, WorldState
 from modules.sim.vehicle import VehicleParams
@@ -126,3 +129,31 @@ def test_late_ticks_step_the_time_that_passed_so_stamps_match_the_motion(rig) ->
         dt = (t1 - t0) / 1e9
         if dt <= 0.2:
             assert b.scenario_time_s - a.scenario_time_s == pytest.approx(dt)
+
+
+def test_collisions_and_corridor_exits_are_found_on_the_step_they_begin_however_seldom_they_are_asked() -> None:
+    # A weaving drive through the default course: every step, the answers asked only when the
+    # footprint may have moved far enough to change them are the answers of asking every step.
+    scenario = load_scenario(DEFAULT_SCENARIO)
+    world = WorldState(scenario, VehicleParams())
+    params, corridor = world.params, scenario.course.corridor
+    route = scenario.route
+    touching, outside = None, False
+    for k in range(12_000):
+        state = world.state
+        ahead = min(world._route_index + 6, len(route.s_m) - 1)
+        bearing = math.atan2(route.north_m[ahead] - state.north_m, route.east_m[ahead] - state.east_m)
+        weave = (0.0, 1.2, 0.0, -1.2)[k // 400 % 4]
+        steering = 1.5 * math.remainder(bearing - state.yaw_rad, math.tau) + weave
+        events = world.advance(ActuatorCommand(0.7 if state.speed_mps < 8.0 else 0.0, 0.0, steering), 0.01)
+        hit = collides(world.state, world.obstacles, params)
+        corners = np.array(footprint(world.state, params).corners())
+        now_outside = not bool(np.all(corridor.contains(corners[:, 0], corners[:, 1])))
+        expected = []
+        if hit is not None and hit.name != touching:
+            expected.append("collision")
+        if now_outside and not outside:
+            expected.append("corridor_exit")
+        assert [code for code, _text in events] == expected, k
+        touching, outside = (hit.name if hit is not None else None), now_outside
+    assert world.collisions > 0 and world.corridor_exits > 0
