@@ -53,7 +53,7 @@ class BrainConfig:
     origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
     plan_rate_hz: float = setting(10.0, "planning cycles (and Path messages) per second")
     plan_on_stereo: bool = setting(
-        True, "a stereo report (the slowest obstacle input) starts a cycle at once; the rate carries on from it"
+        True, "a stereo report (the slowest obstacle input) is planned on at once; the rate is the fallback"
     )
     snapshot_rate_hz: float = setting(1.0, "map snapshots per second on MAP_SNAPSHOT (0: none)")
     snapshot_downsample: int = setting(2, "snapshot cells are this many map cells a side (max of each block)")
@@ -121,15 +121,19 @@ class Brain(Module):
             self._plan_soon()
 
     def _plan_soon(self) -> None:
-        """Move the planning grid to start now: the ESVS's report is the input that waits longest
-        (exposure, a round, processing), so planning on its arrival, not up to a period later,
-        is what keeps obstacle-to-actuator latency low. At most one report per half period does
-        this, so a faster ESVS cannot more than double the planning rate."""
+        """Plan now: the ESVS's report is the obstacle input that waits longest (exposure,
+        processing), so planning on its arrival, not up to a period later, is what keeps
+        obstacle-to-actuator latency low. The grid becomes the fallback, next due 1.5 periods
+        on: while reports come at the planning rate it never fires just ahead of one (with
+        stale stereo data), and when they stop it plans on at its rate. At most one report per
+        half period plans, so a faster ESVS cannot more than double the planning rate."""
         period_s = 1.0 / self.config.plan_rate_hz
         now = time.monotonic_ns()
-        if now - self.last_rephase_ns >= period_s * 0.5e9:
-            self.last_rephase_ns = now
-            self.runtime.set_period("plan", period_s, first_in_s=0.0)
+        if now - self.last_rephase_ns < period_s * 0.5e9:
+            return
+        self.last_rephase_ns = now
+        self.plan()
+        self.runtime.set_period("plan", period_s, first_in_s=1.5 * period_s)
 
     def on_profile(self, message: SurfaceProfile, envelope: Envelope) -> None:
         self._heard(message.sensor, envelope.t_meas_ns)

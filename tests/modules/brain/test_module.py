@@ -24,7 +24,7 @@ def vehicle_state() -> VehicleState:
     return VehicleState(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, covariance, int(NavQuality.DGPS))
 
 
-def feed(sensors: Bus, paths: list[float], delays: list[float], count: int) -> None:
+def feed(sensors: Bus, paths: list[float], delays: list[float], between: list[int], count: int) -> None:
     """Be the navigation and a 10 Hz ESVS whose reports come 20 ms after the brain's first path
     (out of phase with its grid), noting how long each report waits for the next path."""
     deadline = time.monotonic() + 5.0
@@ -32,6 +32,7 @@ def feed(sensors: Bus, paths: list[float], delays: list[float], count: int) -> N
         sensors.publish(channels.VEHICLE_STATE, vehicle_state())
         sensors.poll(0.01)
     next_report = time.monotonic() + 0.02
+    first_report = len(paths)
     while time.monotonic() < deadline and len(delays) < count:
         while time.monotonic() < next_report:
             sensors.publish(channels.VEHICLE_STATE, vehicle_state())
@@ -43,9 +44,11 @@ def feed(sensors: Bus, paths: list[float], delays: list[float], count: int) -> N
         if len(paths) > before:
             delays.append(paths[before] - sent)
         next_report += PLAN_PERIOD_S
+    # Every path after the first report was planned on a report: the grid never fired between them.
+    between.append(len(paths) - first_report)
 
 
-def test_a_stereo_report_starts_a_planning_cycle_at_once() -> None:
+def test_a_stereo_report_is_planned_on_at_once_and_the_grid_waits() -> None:
     hub, keyring = uuid.uuid4().hex, Keyring.generate()
     clock = MasterClock()
     runtime = Runtime(Bus(MemTransport(hub), 30, keyring, clock), clock)
@@ -54,10 +57,12 @@ def test_a_stereo_report_starts_a_planning_cycle_at_once() -> None:
     paths: list[float] = []
     sensors.subscribe(channels.PATH, lambda _path, _env: paths.append(time.monotonic()), Path)
     delays: list[float] = []
-    feeder = threading.Thread(target=lambda: (feed(sensors, paths, delays, 8), runtime.stop()))
+    between: list[int] = []
+    feeder = threading.Thread(target=lambda: (feed(sensors, paths, delays, between, 8), runtime.stop()))
     feeder.start()
     runtime.run(brain, duration_s=10.0)
     feeder.join()
     assert len(delays) == 8, f"{len(paths)} paths"
     # Reports come 20 ms after a path: on the grid alone the next path would be 80 ms later.
     assert max(delays) < 0.04, delays
+    assert between == [8]  # one path per report, none from the grid in between
