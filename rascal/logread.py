@@ -121,10 +121,13 @@ def _datagram(path: Path, record: Message) -> Datagram:
 def decode(datagram: Datagram) -> Any:
     """The typed message a recorded datagram carries; ProtocolError if its body does not decode.
     The tag is not checked again: the recorder wrote only what its bus had authenticated."""
-    data = datagram.data
+    return decode_body(datagram.type_id, body_of(datagram.data), datagram.source_id)
+
+
+def body_of(data: bytes) -> memoryview:
+    """The body of a whole recorded message: after the header and channel name, before the tag."""
     end = len(data) - TAG_BYTES if data[3] & FLAG_SIGNED else len(data)
-    body = memoryview(data)[HEADER_BYTES + data[10] : end]  # byte 10: the channel name's length
-    return decode_body(datagram.type_id, body, datagram.source_id)
+    return memoryview(data)[HEADER_BYTES + data[10] : end]  # byte 10: the channel name's length
 
 
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:

@@ -12,6 +12,8 @@ What the file holds (MCAP, zstd chunks):
   32-bit; the full number is in the bytes).
 * beside it, a **JSON channel** ``<CHANNEL>.json`` (encoding ``json``) with a JSON Schema
   (``jsonschema``) generated from the message declaration: Foxglove opens the file as it is.
+  ``rascal run`` records raw only (``json_channels=false``: the JSON costs four times the raw
+  write) and adds the JSON channels when the run has ended (rascal/record_twins.py).
   Messages whose body does not decode (a peer holding the key but sending a newer or broken
   layout) are kept raw only and counted.
 * metadata ``run`` at the start (what the caller passed with ``--info``, the bus, the host) and

@@ -44,6 +44,7 @@ from rascal.deployment import (
 )
 from rascal.logread import RecordingError, read_metadata
 from rascal.module import Runtime
+from rascal.record_twins import add_json_twins
 from rascal.recording import END_METADATA
 from rascal.report import report_run
 from rascal.supervisor import SUPERVISOR_SOURCE_ID, Child, Supervisor, module_state
@@ -82,6 +83,7 @@ class RunSupervisor(Supervisor):
             settings={
                 "out": str((run_dir / "run.mcap").resolve()),
                 "info": f"deployment={deployment.name},host={host}",
+                "json_channels": "false",  # added after the run (rascal/record_twins.py)
             },
             entry="rascal.recording",
         )
@@ -105,7 +107,8 @@ class RunSupervisor(Supervisor):
         self.bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
         self.bus.subscribe(channels.HEALTH, lambda event, _env: self.events.append(event))
         self.every(VIEW_PERIOD_S, self.refresh, priority=1)
-        self.live = Live(self.view(), console=self.console, refresh_per_second=4, transient=False)
+        # Drawn when the view changes (every VIEW_PERIOD_S), not by rich's own 4 Hz refresh thread.
+        self.live = Live(self.view(), console=self.console, auto_refresh=False, transient=False)
         self.live.start()
 
     def on_vehicle_state(self, state: VehicleState, _envelope: Envelope) -> None:
@@ -116,7 +119,7 @@ class RunSupervisor(Supervisor):
             s, _ = self.frame.locate(self.state.east_m, self.state.north_m, self.station_m)
             self.station_m = float(s)
         if self.live is not None:
-            self.live.update(self.view())
+            self.live.update(self.view(), refresh=True)
         elapsed = time.monotonic() - self.started_s
         if self.duration_s is not None and elapsed >= self.duration_s:
             self.runtime.stop()
@@ -130,7 +133,7 @@ class RunSupervisor(Supervisor):
         self._stop_vehicle()
         super().on_stop()
         if self.live is not None:
-            self.live.update(self.view())
+            self.live.update(self.view(), refresh=True)
             self.live.stop()
         summary = self.summary()
         drive = self.run_dir / "drive.json"  # the referee's measures, in simulated deployments
@@ -282,7 +285,20 @@ def run(
         summary["latency_ms"] = {"obstacle_to_actuator": report.latency_ms}
         summary_path.write_text(json.dumps(summary, indent=2))
         console.print(f"obstacle measurement to actuator command: {_latency_line(report.latency_ms)}")
+    _add_json_twins(run_dir / "run.mcap", console)
     return 0, run_dir
+
+
+def _add_json_twins(recording: Path, console: Console) -> None:
+    """Make the recording Foxglove-ready: JSON twins beside the raw channels, written now rather
+    than by the recorder while the vehicle drove."""
+    started = time.monotonic()
+    try:
+        messages = add_json_twins(recording)
+    except (RecordingError, OSError) as exc:
+        console.print(f"{recording}: kept raw only, no JSON channels: {exc}", markup=False, highlight=False)
+        return
+    console.print(f"{recording}: JSON channels added for {messages} messages in {time.monotonic() - started:.1f} s")
 
 
 def _latency_line(latency_ms: dict[str, float | int]) -> str:

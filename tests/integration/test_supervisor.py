@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from protocol import channels
 from protocol.codec import Envelope
@@ -103,4 +104,10 @@ def test_rascal_run_restarts_killed_and_hung_modules(bus_url: str, key_file: Pat
     assert summary["cpu_pct"]["modules"] == pytest.approx(sum(cpu.values()), abs=0.2)
     assert 0 < summary["cpu_pct"]["supervisor"] < 100
     assert summary["health_events"]["supervisor:cpu_budget"] == 1  # said once, though over it all along
+    # Recorded raw, the JSON channels added after the run: Foxglove-ready.
+    with (run_dir / "run.mcap").open("rb") as stream:
+        summary_record = make_reader(stream).get_summary()
+    assert summary_record is not None
+    topics = {channel.topic for channel in summary_record.channels.values()}
+    assert {channels.OBSTACLES_BEACON, channels.OBSTACLES_BEACON + ".json"} <= topics
     assert not pids_of("beacon", bus_url), "the run stopped its modules"

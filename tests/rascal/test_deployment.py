@@ -25,7 +25,7 @@ host = "back"
 [modules.ins]
 host = "front"
 nice = 5
-cpu_budget_pct = 8
+cpu_budget_pct = 9
 set = { filter = "ukf" }
 
 [modules.health]
@@ -54,7 +54,7 @@ def test_hosts_shared_settings_and_overrides(tmp_path: Path) -> None:
     assert [s.label for s in deployment.on_host("front")] == ["ins"]
     ins = deployment.spec("ins")
     assert ins.nice == 5 and ins.source_id == 11
-    assert ins.cpu_budget_pct == 8.0 and deployment.spec("health").cpu_budget_pct == 3.0  # set, and the default
+    assert ins.cpu_budget_pct == 9.0 and deployment.spec("health").cpu_budget_pct == 3.0  # set, and the default
     assert ins.settings == {"course": str((tmp_path / "course.rddf").resolve()), "filter": "ukf"}
     assert "course" not in deployment.spec("health").settings  # health has no course setting
     assert deployment.spec("health").arguments()[-1] == "watch=IMU:0.5,GPS:1.0"
@@ -82,8 +82,8 @@ def test_hosts_shared_settings_and_overrides(tmp_path: Path) -> None:
             lambda t: t.replace("[modules.time_service]", "[modules.time_service]\nheartbeat_timeout_s = 0.5"),
             r"heartbeat_timeout_s: must exceed",
         ),
-        (lambda t: t.replace("cpu_budget_pct = 8", "cpu_budget_pct = 0"), r"modules\.ins\.cpu_budget_pct: expected"),
-        (lambda t: t.replace("cpu_budget_pct = 8", 'cpu_budget_pct = "8"'), r"cpu_budget_pct: expected a number"),
+        (lambda t: t.replace("cpu_budget_pct = 9", "cpu_budget_pct = 0"), r"modules\.ins\.cpu_budget_pct: expected"),
+        (lambda t: t.replace("cpu_budget_pct = 9", 'cpu_budget_pct = "9"'), r"cpu_budget_pct: expected a number"),
         (lambda t: t.replace("[deployment]", "[deployment\n"), r"not valid TOML"),
     ],
 )

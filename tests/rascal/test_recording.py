@@ -26,6 +26,7 @@ from rascal.bustools import to_jsonable
 from rascal.clock import MasterClock
 from rascal.logread import END_METADATA, RUN_METADATA, Scan, check_sequences, iter_datagrams, read_metadata
 from rascal.record_schema import JSON_SCHEMA_ENCODING, RAW_ENCODING, json_converter, json_schema
+from rascal.record_twins import add_json_twins
 from rascal.recording import RECORDER_SOURCE_ID, RecordingWriter, bus_counts
 from tests.conftest import ROOT
 
@@ -236,14 +237,16 @@ def test_records_a_live_bus_session_exactly(bus_url: str, key_file: Path, tmp_pa
 # -- files the recorder must cope with -------------------------------------------------------------
 
 
-def _stream_of(path: Path, count: int, drop: int | None = None) -> tuple[Bus, RecordingWriter]:
+def _stream_of(
+    path: Path, count: int, drop: int | None = None, json_channels: bool = True
+) -> tuple[Bus, RecordingWriter]:
     """``count`` IMU messages through an in-process bus into a recording, skipping message
     ``drop`` on its way into the file (a recorder that lost one)."""
     hub = f"mem://rec-{uuid.uuid4().hex}"
     keyring = Keyring.generate()
     publisher = Bus.open(hub, source_id=12, clock=MasterClock(), keyring=keyring)
     listener = Bus.open(hub, source_id=RECORDER_SOURCE_ID, clock=MasterClock(), keyring=keyring)
-    writer = RecordingWriter(path, {})
+    writer = RecordingWriter(path, {}, json_channels=json_channels)
     written = 0
 
     def record(opened: Any, data: bytes, recv_ns: int) -> None:
@@ -257,6 +260,32 @@ def _stream_of(path: Path, count: int, drop: int | None = None) -> tuple[Bus, Re
         publisher.publish(channels.IMU, ImuSample(0.0, 0.0, 9.8, 0.0, 0.0, float(i)))
     listener.poll(0.0)
     return listener, writer
+
+
+def test_json_twins_added_after_the_run_are_those_the_recorder_would_write(tmp_path: Path) -> None:
+    bus, raw = _stream_of(tmp_path / "raw.mcap", 20, json_channels=False)
+    raw.close(bus_counts(bus, raw))
+    bus, live = _stream_of(tmp_path / "live.mcap", 20)
+    live.close(bus_counts(bus, live))
+    assert add_json_twins(tmp_path / "raw.mcap") == 20
+    assert not list(tmp_path.glob("*partial*"))
+
+    def contents(path: Path) -> dict[str, list[bytes]]:
+        topics: dict[str, list[bytes]] = {}
+        with path.open("rb") as stream:
+            for _schema, channel, message in make_reader(stream).iter_messages():
+                topics.setdefault(channel.topic, []).append(message.data if channel.topic.endswith(".json") else b"")
+        return topics
+
+    twinned, recorded = contents(tmp_path / "raw.mcap"), contents(tmp_path / "live.mcap")
+    assert set(twinned) == {channels.IMU, channels.IMU + ".json"} == set(recorded)
+    # The same JSON as the recorder's own (the IMU values are the same; the streams differ only in keys).
+    assert [json.loads(m) for m in twinned[channels.IMU + ".json"]] == [
+        json.loads(m) for m in recorded[channels.IMU + ".json"]
+    ]
+    metadata = read_metadata(tmp_path / "raw.mcap")
+    assert metadata[RUN_METADATA] == {} and metadata[END_METADATA]["received/IMU"] == "20"
+    assert check_sequences(tmp_path / "raw.mcap").problems() == []
 
 
 def test_the_check_sees_a_message_the_recorder_missed(tmp_path: Path) -> None:
