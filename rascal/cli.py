@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from brain.rddf_cli import add_rddf_commands
+from modules.sim.generate import add_scenario_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console
 from rascal.logtools import add_log_commands
@@ -102,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     status.set_defaults(handler=_time_status)
 
     add_rddf_commands(commands)
+    add_scenario_commands(commands)
     add_log_commands(commands)
     add_deploy_commands(commands)
     add_report_command(commands)

@@ -1,6 +1,6 @@
 """Declarative scenarios: a TOML file naming the course, what stands on it, and what will fail.
 
-    [scenario]            name, rddf (path relative to this file), seed, optional origin
+    [scenario]            name, rddf (path relative to this file), seed, optional origin, fair
     [road]                optional road edges (lane borders) at +-half_width_m of the centreline
     [[obstacle]]          hand-placed obstacles, by arc length and offset or by east/north
     [random_obstacles]    seeded random obstacles inside the corridor
@@ -11,6 +11,10 @@
 Placement by ``at_m`` (arc length along the course centreline) and ``offset_m`` (left of it,
 metres) keeps a scenario readable and valid when the course is edited. Every key is checked: a
 bad file raises ScenarioError naming the file, the table and the key; nothing is half-loaded.
+
+Every scenario must be fair (``modules/sim/fairness.py``): its obstacles and hazards leave a free
+lane of the vehicle's width + 1.0 m from start to finish, or loading fails naming the place and
+what blocks it. A test that blocks the course on purpose says ``fair = false`` in [scenario].
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 
 from brain.corridor import Course, CoursePath, GeodeticOrigin
 from brain.rddf import RddfError
+from modules.sim.fairness import Stations, blockers, find_unfairness
 from modules.sim.world import (
     FaultKind,
     HazardKind,
@@ -104,7 +109,7 @@ def load_scenario(path: str | Path = DEFAULT_SCENARIO) -> Scenario:
     reader = _Reader(path)
     reader.keys(doc, "", {"scenario", "road", "obstacle", "random_obstacles", "hazard", "fault", "gps_jumps"})
     head = reader.table(doc, "scenario", required=True)
-    reader.keys(head, "scenario", {"name", "rddf", "seed", "origin"})
+    reader.keys(head, "scenario", {"name", "rddf", "seed", "origin", "fair"})
     course = _course(reader, head)
     route = course.interpolate()
     seed = reader.integer(head, "scenario", "seed", default=0)
@@ -124,8 +129,22 @@ def load_scenario(path: str | Path = DEFAULT_SCENARIO) -> Scenario:
             *_gps_jumps(reader, reader.table(doc, "gps_jumps"), seed),
         ),
     )
+    if reader.boolean(head, "scenario", "fair", default=True):
+        unfair = find_unfairness(Stations.along(course), blockers(world))
+        if unfair:
+            raise ScenarioError(f"{path}: unfair: {unfair}")
     name = reader.string(head, "scenario", "name", default=path.stem)
     return Scenario(name, path, seed, course, route, world)
+
+
+def obstacle_from_table(route: CoursePath, table: dict[str, Any]) -> WorldObstacle:
+    """An [[obstacle]] table placed as the loader places it, for tools that write scenarios."""
+    return _obstacle(_Reader(Path("<generated>")), route, table, "obstacle")
+
+
+def hazard_from_table(route: CoursePath, table: dict[str, Any]) -> TerrainHazard:
+    """A [[hazard]] table placed as the loader places it, for tools that write scenarios."""
+    return _hazard(_Reader(Path("<generated>")), route, table, "hazard")
 
 
 class _Reader:
@@ -180,6 +199,12 @@ class _Reader:
         value = table.get(key, default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(f"{where}.{key}", f"expected an integer, got {value!r}")
+        return value
+
+    def boolean(self, table: dict[str, Any], where: str, key: str, default: bool) -> bool:
+        value = table.get(key, default)
+        if not isinstance(value, bool):
+            raise self.fail(f"{where}.{key}", f"expected true or false, got {value!r}")
         return value
 
     def string(self, table: dict[str, Any], where: str, key: str, default: str | None = None) -> str:

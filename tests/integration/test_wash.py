@@ -1,4 +1,4 @@
-"""The whole stack meets the default scenario's wash on a short straight: a ditch 14 m wide
+"""The whole stack meets the default scenario's wash on a short straight: a ditch 13.8 m wide
 across a road whose corridor is 18 m wide, so the only way on is round one end, through a band
 about half a metre wide between the gate's clearances. The sweeping lidar sees the wash 37 m
 ahead; the stereo cameras lose it inside 10 m, and so does everything else once the vehicle
@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 
 # 330 m due east at 30 mph with a 30 ft boundary (the default course's, at its wash).
 RDDF = rddf([(34.8650000, -116.8900000), (34.8650000, -116.8863900)], width_ft=30, speed_mph=30)
-WASH = ("hazard", {"name": "wash", "kind": "ditch", "at_m": 170.0, "length_m": 2.5, "width_m": 14.0, "depth_m": 0.7})
+WASH = ("hazard", {"name": "wash", "kind": "ditch", "at_m": 170.0, "length_m": 2.5, "width_m": 13.8, "depth_m": 0.7})
 
 
 def test_the_stack_finds_the_way_round_the_wash(bus_url: str, key_file: Path, tmp_path: Path) -> None:
