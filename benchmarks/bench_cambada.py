@@ -83,8 +83,11 @@ class TimedEsvs(Esvs):
 
     def round(self) -> None:
         self.round_ns.append(time.monotonic_ns())
-        pending = self.pending_obstacles
         super().round()
+
+    def _send(self) -> None:  # at the round and at each quarter-round watch
+        pending = self.pending_obstacles
+        super()._send()
         if pending is not None:
             self.sent.append((time.monotonic_ns(), pending.t_exposure_ns))
 
