@@ -34,10 +34,7 @@ class TimeClient:
         self._outstanding: OrderedDict[int, int] = OrderedDict()
         self._last_request_ns: int | None = None
         self.replies = 0
-        # Every node hears every exchange on TIME_SYNC: replies are taken when the loop next
-        # wakes anyway (its time request is every 0.1 s), their arrival time from the kernel,
-        # so no node wakes for other nodes' time traffic.
-        bus.subscribe(channels.TIME_SYNC, self._on_time_sync, wake=False)
+        bus.subscribe(channels.TIME_SYNC, self._on_time_sync)
 
     def request(self) -> None:
         """Ask the master for the time: every call (callers call at 10 Hz) until the estimate has
