@@ -97,6 +97,16 @@ def build_parser() -> argparse.ArgumentParser:
     bridge.add_argument("--duration", type=float, default=3600.0, help="seconds to run")
     bridge.set_defaults(handler=_bus_bridge)
 
+    for name, help_text in (
+        ("stop", "e-stop the vehicle: control brakes and holds until it restarts, then until resume"),
+        ("pause", "pause the vehicle: control brakes and holds until resume"),
+        ("resume", "let control drive again after a pause (or an e-stop from before it restarted)"),
+    ):
+        order = commands.add_parser(name, help=f"{help_text}; repeated until control obeys")
+        order.add_argument("--reason", default=f"operator {name}", help="recorded with the order")
+        order.add_argument("--timeout", type=float, default=5.0, help="seconds to keep ordering before giving up")
+        order.set_defaults(handler=_operator_order)
+
     time_ = commands.add_parser("time", help="shared time").add_subparsers(dest="tool", required=True)
     status = time_.add_parser("status", help="this node's sync to the master and every module's clock state")
     status.add_argument("--duration", type=float, default=2.0, help="seconds to synchronise and listen")
@@ -157,6 +167,16 @@ def _bus_pub(args: argparse.Namespace) -> int:
         return 2
     print(f"published {sent} on {args.channel}")
     return 0
+
+
+def _operator_order(args: argparse.Namespace) -> int:
+    from protocol.messages import StopMode
+    from rascal.operator_stop import describe, give_order
+
+    mode = {"stop": StopMode.ESTOP, "pause": StopMode.PAUSE, "resume": StopMode.RUN}[args.command]
+    result = give_order(args.bus, mode, args.reason, args.timeout)
+    print(describe(mode, result), file=sys.stdout if result.confirmed else sys.stderr)
+    return 0 if result.confirmed else 1
 
 
 def _bus_bridge(args: argparse.Namespace) -> int:

@@ -14,10 +14,12 @@ also tells the service manager it is ready and, with each heartbeat, that it is 
 from __future__ import annotations
 
 import heapq
+import os
 import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 from protocol import channels
@@ -32,6 +34,14 @@ from rascal.timesync import SyncState
 
 HEARTBEAT_PERIOD_S = 1.0
 TIME_REQUEST_PERIOD_S = 0.1
+
+RUN_DIR_ENV = "RASCAL_RUN_DIR"  # set by the supervisor: where a module may leave run artefacts
+
+
+def run_artefact(name: str) -> Path | None:
+    """``name`` in the supervisor's run directory, or None for a module started outside a run."""
+    run_dir = os.environ.get(RUN_DIR_ENV)
+    return Path(run_dir) / name if run_dir else None
 
 
 @dataclass

@@ -24,7 +24,7 @@ from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ModuleState, ModuleStatus, Severity
 from rascal.deployment import Deployment, ModuleSpec
-from rascal.module import Module, Runtime
+from rascal.module import RUN_DIR_ENV, Module, Runtime
 from rascal.sdnotify import NOTIFY_SOCKET_ENV
 
 CHECK_PERIOD_S = 0.05
@@ -34,7 +34,6 @@ FIRST_BACKOFF_S = 0.25
 MAX_BACKOFF_S = 5.0
 STOP_WAIT_S = 5.0
 SUPERVISOR_SOURCE_ID = 9
-RUN_DIR_ENV = "RASCAL_RUN_DIR"
 CPU_BUDGET_BEATS = 10
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path as FilePath
 
 from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose, VehicleController
 from modules.control.limits import (
@@ -22,11 +23,12 @@ from modules.control.limits import (
 from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
 from modules.control.speed import SpeedGains
 from modules.control.steering import PdGains, StanleyGains
+from modules.control.stop_latch import StopLatch, StopOrder
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, NavQuality, Path, Severity, StopCommand, StopMode, VehicleState
 from rascal.config import ConfigError, setting
-from rascal.module import Module
+from rascal.module import Module, run_artefact
 from rascal.rtdb import Validity
 
 
@@ -58,6 +60,9 @@ class ControlConfig:
     wheelbase_m: float = setting(DEFAULT_WHEELBASE_M, "rear to front axle (Stanley's reference point)")
     max_steering_rad: float = setting(DEFAULT_MAX_STEERING_RAD, "front wheel angle limit, either side")
     max_steering_rate_radps: float = setting(DEFAULT_MAX_STEERING_RATE_RADPS, "steering actuator rate limit")
+    stop_file: str = setting(
+        "", "where the operator's stop/pause outlives a restart (default: control.stop.json in $RASCAL_RUN_DIR)"
+    )
 
     def __post_init__(self) -> None:
         if self.controller not in LAWS:
@@ -105,8 +110,14 @@ class Control(Module):
         self.controller = VehicleController(config.controller_settings())
         self.state_in = self.input(channels.VEHICLE_STATE, config.state_max_age_s)
         self.path_in = self.input(channels.PATH, config.path_max_age_s)
-        self.stop_mode = StopMode.RUN
-        self.stop_text = ""
+        self.latch = StopLatch(_stop_file(config.stop_file))
+        order, problem = self.latch.load()
+        self.stop_mode, self.stop_text = order.mode, order.reason
+        if problem is not None:
+            self.report(Severity.ERROR, "stop_file", problem)
+        elif order.mode is not StopMode.RUN:
+            held = f"restarted under an operator stop: {order.reason}; holding until RUN"
+            self.report(Severity.CRITICAL, "pause", held)
         self.failsafe_reason: str | None = None  # None: not in the fail-safe
         self.last: Output | None = None
         self.commands = 0
@@ -128,6 +139,11 @@ class Control(Module):
             self.report(Severity.WARNING, "stop_unknown", f"unknown stop mode {command.mode}: holding as PAUSE")
         if mode is self.stop_mode:
             return
+        try:
+            self.latch.store(StopOrder(mode, command.reason))
+        except OSError as exc:
+            # Honour the order regardless: failing to remember a stop must not stop it working.
+            self.report(Severity.ERROR, "stop_file", f"{self.latch.path}: {exc}; a restart would forget this order")
         self.stop_mode, self.stop_text = mode, command.reason
         severity = Severity.CRITICAL if mode is StopMode.ESTOP else Severity.INFO
         self.report(severity, mode.name.lower(), command.reason or mode.name)
@@ -229,3 +245,9 @@ def _input_problem(channel: str, validity: Validity, age_ns: int | None) -> str 
     if validity is Validity.STALE:
         return f"{channel} stale ({(age_ns or 0) / 1e9:.2f} s old)"
     return None
+
+
+def _stop_file(setting_value: str) -> FilePath | None:
+    """The configured stop file, else one in the run directory, else none (a control started by
+    hand, outside a run, keeps its stop order in memory only)."""
+    return FilePath(setting_value) if setting_value else run_artefact("control.stop.json")

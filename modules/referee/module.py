@@ -12,7 +12,6 @@ writes (and for its heartbeat), in the order it arrived.
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from operator import itemgetter
@@ -26,9 +25,8 @@ from protocol.codec import Envelope
 from protocol.messages import Path as PlannedPath
 from protocol.messages import SimTruth
 from rascal.config import setting
-from rascal.module import Module, Runtime
+from rascal.module import Module, Runtime, run_artefact
 
-RUN_DIR_ENV = "RASCAL_RUN_DIR"
 SUMMARY_PERIOD_S = 1.0
 
 
@@ -47,9 +45,7 @@ class Referee(Module):
 
     def __init__(self, config: RefereeConfig, runtime: Runtime) -> None:
         super().__init__(config, runtime)
-        self.out = Path(config.out) if config.out else None
-        if self.out is None and os.environ.get(RUN_DIR_ENV):
-            self.out = Path(os.environ[RUN_DIR_ENV]) / "drive.json"
+        self.out = Path(config.out) if config.out else run_artefact("drive.json")
 
     def on_start(self) -> None:
         self.measures = Measures(load_scenario(self.config.scenario))
