@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from modules.referee.module import RUN_DIR_ENV, Referee, RefereeConfig
+from modules.referee.module import Referee, RefereeConfig
 from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import Path as PlannedPath
@@ -15,7 +15,7 @@ from protocol.messages import PathPoint, SimTruth
 from protocol.transport import MemTransport
 from rascal.bus import Bus
 from rascal.clock import ManualClock
-from rascal.module import Runtime
+from rascal.module import RUN_DIR_ENV, Runtime
 
 
 class Recorder:
