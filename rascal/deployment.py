@@ -37,6 +37,7 @@ rule's seed mixed with the module's source id (repeatable, yet modules lose diff
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,6 +76,10 @@ DEFAULT_CPU_BUDGET_PCT: dict[str, float] = {
     "time_service": 1.0,
 }
 OTHER_CPU_BUDGET_PCT = 10.0
+# Labels (and, for systemd units, hosts and names) become file, directory and unit names: a
+# conservative charset, never starting with "." or "-" (so never "." or ".."), bounded.
+SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+SAFE_NAME_RULE = "1-64 of A-Z a-z 0-9 _ . -, not starting with . or -"
 
 
 class DeploymentError(ValueError):
@@ -222,6 +227,9 @@ class _Parser:
         self, label: str, table: Any, hosts: dict[str, str], explicit_hosts: bool, shared: dict[str, Any]
     ) -> ModuleSpec:
         where = f"modules.{label}"
+        if SAFE_NAME.fullmatch(label) is None:
+            # A label names the module's log file in the run directory, and its systemd unit.
+            raise self.fail("modules", f"{label!r} cannot be a module label ({SAFE_NAME_RULE})")
         if not isinstance(table, dict):
             raise self.fail(where, "expected a table")
         self.keys(table, where, {"module", "host", "source_id", "nice", "heartbeat_timeout_s", "cpu_budget_pct", "set"})

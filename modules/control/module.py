@@ -10,6 +10,7 @@ the next tick.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path as FilePath
 
@@ -61,7 +62,7 @@ class ControlConfig:
     max_steering_rad: float = setting(DEFAULT_MAX_STEERING_RAD, "front wheel angle limit, either side")
     max_steering_rate_radps: float = setting(DEFAULT_MAX_STEERING_RATE_RADPS, "steering actuator rate limit")
     stop_file: str = setting(
-        "", "where the operator's stop/pause outlives a restart (default: control.stop.json in $RASCAL_RUN_DIR)"
+        "", "where the operator's stop/pause outlives a restart (default: control.stop.json in the run/state dir)"
     )
 
     def __post_init__(self) -> None:
@@ -248,6 +249,11 @@ def _input_problem(channel: str, validity: Validity, age_ns: int | None) -> str 
 
 
 def _stop_file(setting_value: str) -> FilePath | None:
-    """The configured stop file, else one in the run directory, else none (a control started by
-    hand, outside a run, keeps its stop order in memory only)."""
-    return FilePath(setting_value) if setting_value else run_artefact("control.stop.json")
+    """The configured stop file, else one in the run directory (`rascal run`), else one in
+    systemd's state directory (units from `rascal deploy units`), else none: a control started
+    by hand keeps its stop order in memory only."""
+    if setting_value:
+        return FilePath(setting_value)
+    state_dir = os.environ.get("STATE_DIRECTORY")
+    fallback = FilePath(state_dir.split(":")[0]) / "control.stop.json" if state_dir else None
+    return run_artefact("control.stop.json") or fallback

@@ -1,6 +1,8 @@
 """systemd units: `rascal deploy units` output passes `systemd-analyze verify` with nothing on
-stderr, and a real module started the way a unit starts it (`rascal deploy exec`) tells the
-service manager READY=1, then WATCHDOG=1 with every heartbeat, from the PID systemd started."""
+stderr and runs every module unprivileged in a sandbox; a hostile deployment file is refused in
+one line and nothing outside `-o` is touched; and a real module started the way a unit starts it
+(`rascal deploy exec`) tells the service manager READY=1, then WATCHDOG=1 with every heartbeat,
+from the PID systemd started."""
 
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from rascal.deployment import load_deployment
+from rascal.cli import main
+from rascal.deployment import DeploymentError, load_deployment
 from rascal.sdnotify import Notifier
 from rascal.units import write_units
 from tests.conftest import ROOT
@@ -24,6 +27,20 @@ from tests.conftest import ROOT
 SYSTEMD_ANALYZE = shutil.which("systemd-analyze") or "/usr/bin/systemd-analyze"
 RASCAL = Path(sys.executable).with_name("rascal")
 THREE_HOSTS = ROOT / "deploy" / "vehicle-3hosts.toml"
+SANDBOX = (
+    "User=rascal",
+    "NoNewPrivileges=yes",
+    "CapabilityBoundingSet=\n",
+    "ProtectSystem=strict",
+    "ProtectHome=read-only",
+    "PrivateTmp=yes",
+    "ProtectKernelTunables=yes",
+    "ProtectKernelModules=yes",
+    "ProtectControlGroups=yes",
+    "RestrictAddressFamilies=AF_INET AF_INET6 AF_UNIX AF_NETLINK",
+    "LockPersonality=yes",
+)
+ONE_HOST = '[deployment]\nbus = "udpm://239.255.1.2:7700?ttl=0"\n'
 
 
 def _verify(*units: Path) -> subprocess.CompletedProcess[str]:
@@ -43,7 +60,7 @@ def test_units_of_every_host_pass_systemd_analyze_verify(tmp_path: Path) -> None
         labels = [spec.label for spec in deployment.on_host(host)]
         target = (host_dir / f"rascal-{host}.target").read_text()
         assert f"Wants={' '.join(f'rascal@{label}.service' for label in labels)}\n" in target
-        assert len(files) == 3 + len(labels)
+        assert len(files) == 4 + len(labels)
         template = (host_dir / "rascal@.service").read_text()
         for line in ("Type=notify", "Restart=on-failure", "RestartSec=1", "WatchdogSec=3", f"ExecStart={RASCAL} "):
             assert line in template
@@ -57,6 +74,97 @@ def test_units_of_every_host_pass_systemd_analyze_verify(tmp_path: Path) -> None
         assert result.returncode == 0 and result.stderr == "", f"{host}: {result.stderr}"
     drop_in = (tmp_path / "sensors" / "rascal@lidar_h_left.service.d" / "deployment.conf").read_text()
     assert "WatchdogSec=3000ms" in drop_in and "Nice=0" in drop_in
+
+
+def test_modules_run_unprivileged_in_a_sandbox(tmp_path: Path) -> None:
+    write_units(load_deployment(THREE_HOSTS), tmp_path, RASCAL)
+    sandbox = (tmp_path / "sensors" / "rascal@.service.d" / "sandbox.conf").read_text()
+    assert sandbox.startswith("# ") and "\n[Service]\n" in sandbox
+    for line in SANDBOX:
+        assert line in sandbox
+    drop_ins = tmp_path / "sensors"
+    # The ESVS asks for SCHED_FIFO (up to its round's priority 50): a limit, not a capability.
+    assert "LimitRTPRIO=50\n" in (drop_ins / "rascal@esvs.service.d" / "deployment.conf").read_text()
+    assert "RestrictRealtime=yes\n" in (drop_ins / "rascal@lidar_sweep.service.d" / "deployment.conf").read_text()
+    write_units(load_deployment(THREE_HOSTS), tmp_path, RASCAL, user="robot")
+    assert "\nUser=robot\n" in (tmp_path / "drive" / "rascal@.service.d" / "sandbox.conf").read_text()
+    with pytest.raises(ValueError, match="--user 'robot\\\\nUser=root'"):
+        write_units(load_deployment(THREE_HOSTS), tmp_path, RASCAL, user="robot\nUser=root")
+
+
+def _tree(top: Path) -> dict[str, bytes | str]:
+    """Every entry under ``top``: a file's bytes, a link's target, "dir" for a directory."""
+    entries: dict[str, bytes | str] = {}
+    for path in sorted(top.rglob("*")):
+        name = str(path.relative_to(top))
+        entries[name] = os.readlink(path) if path.is_symlink() else "dir" if path.is_dir() else path.read_bytes()
+    return entries
+
+
+@pytest.mark.parametrize(
+    ("text", "refusal"),
+    [
+        (ONE_HOST + '[hosts.".."]\n[modules.time_service]\nhost = ".."\n', "hosts: '..'"),
+        (ONE_HOST + '[hosts."../x"]\n[modules.time_service]\nhost = "../x"\n', "hosts: '../x'"),
+        (ONE_HOST + '[hosts."/tmp/x"]\n[modules.time_service]\nhost = "/tmp/x"\n', "hosts: '/tmp/x'"),
+        (ONE_HOST + 'name = "x\\n[Service]\\nUser=root"\n[modules.time_service]\n', "deployment.name: 'x\\n[Service]"),
+        (
+            ONE_HOST + '[modules."time_service\\nExecStartPre=/bin/sh"]\nmodule = "time_service"\n',
+            "modules: 'time_service\\nExecStartPre=/bin/sh'",
+        ),
+        (
+            '[deployment]\nbus = "mem://x\\nRASCAL_KEY_FILE=/tmp/k"\n[modules.time_service]\n',
+            "deployment.bus: 'mem://x\\nRASCAL_KEY_FILE=/tmp/k' cannot go in rascal.env",
+        ),
+    ],
+    ids=["dotdot-host", "slash-host", "absolute-host", "newline-name", "newline-label", "newline-bus"],
+)
+def test_a_hostile_deployment_is_refused_in_one_line_and_nothing_is_touched(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, refusal: str
+) -> None:
+    parent = tmp_path / "parent"
+    out = parent / "units"
+    (out / "x").mkdir(parents=True)
+    (parent / "keep.txt").write_text("not rascal's")
+    (out / "x" / "keep.txt").write_text("not rascal's either")
+    before = _tree(parent)
+    hostile = tmp_path / "hostile.toml"
+    hostile.write_text(text)
+    assert main(["deploy", "units", str(hostile), "-o", str(out), "--rascal", str(RASCAL)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"rascal deploy units: {hostile}: {refusal}"), err
+    assert _tree(parent) == before
+
+
+def test_only_files_it_wrote_are_replaced_or_removed_and_no_link_is_followed(tmp_path: Path) -> None:
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "rascal.env").write_text("outside")
+    out = tmp_path / "units"
+    gone, kept = out / "drive" / "rascal@gone.service.d", out / "drive" / "rascal@mixed.service.d"
+    for drop_in in (gone, kept):
+        drop_in.mkdir(parents=True)
+        (drop_in / "deployment.conf").write_text("stale")
+    (kept / "override.conf").write_text("the admin's")
+    (out / "drive" / "notes.txt").write_text("the admin's")
+    (out / "drive" / "rascal.env").symlink_to(outside / "rascal.env")
+    (out / "sensors").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(OSError, match="sensors: not a plain directory"):
+        write_units(load_deployment(THREE_HOSTS), out, RASCAL)
+    (out / "sensors").unlink()
+    (out / "drive" / "rascal@control.service.d").symlink_to(outside, target_is_directory=True)
+    with pytest.raises(OSError, match=r"rascal@control\.service\.d: not a plain directory"):
+        write_units(load_deployment(THREE_HOSTS), out, RASCAL)
+    assert _tree(outside) == {"rascal.env": b"outside"}
+    (out / "drive" / "rascal@control.service.d").unlink()
+    write_units(load_deployment(THREE_HOSTS), out, RASCAL)
+    assert _tree(outside) == {"rascal.env": b"outside"}
+    assert not gone.exists() and _tree(kept) == {"override.conf": b"the admin's"}
+    assert (out / "drive" / "notes.txt").read_text() == "the admin's"
+    assert (
+        not (out / "drive" / "rascal.env").is_symlink()
+        and "RASCAL_BUS_URL" in (out / "drive" / "rascal.env").read_text()
+    )
 
 
 def test_a_broken_unit_does_not_verify(tmp_path: Path) -> None:
@@ -76,7 +184,7 @@ def test_bad_requests_get_clear_errors(tmp_path: Path) -> None:
     odd.write_text(
         '[deployment]\nbus = "udpm://239.255.1.2:7700?ttl=0"\n[modules."time service"]\nmodule = "time_service"\n'
     )
-    with pytest.raises(ValueError, match="'time service' cannot name a systemd unit"):
+    with pytest.raises(DeploymentError, match="modules: 'time service' cannot be a module label"):
         write_units(load_deployment(odd), tmp_path, RASCAL)
     result = subprocess.run(
         [str(RASCAL), "deploy", "exec", str(THREE_HOSTS), "nonesuch"], capture_output=True, text=True, timeout=60
