@@ -121,14 +121,54 @@ static void blake2b_compress(uint64_t h[8], const unsigned char block[BLOCK_BYTE
     for (int i = 0; i < 8; i++) h[i] ^= v[i] ^ v[i + 8];
 }
 
+/* Key material must not outlive its use in freed heap or dead stack memory, and a plain memset
+ * just before free() or a return is a dead store the compiler may drop. */
+static void wipe(void *p, size_t n) {
+#if defined(__GLIBC__) && (__GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 25))
+    explicit_bzero(p, n);
+#else
+    volatile unsigned char *v = p;
+    while (n--) *v++ = 0;
+#endif
+}
+
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
+
+/* Overwrites the stack that a noinline call made from the same frame just used: blake2b_compress
+ * copies the key block into its locals (m, v, register spills), which no wipe() can name. */
+static NOINLINE void burn_stack(void) {
+    unsigned char frame[2048];
+    wipe(frame, sizeof frame);
+}
+
+/* Keeps no key, only what it derives: the tag of empty data is the one tag that compresses the
+ * key block as the last block, so it is made once at keying. */
 typedef struct {
     PyObject_HEAD
-    uint64_t start[8];  /* parameter block applied */
-    uint64_t keyed[8];  /* and the key block compressed, for messages of one byte or more */
-    unsigned char key_block[BLOCK_BYTES];
+    uint64_t keyed[8];  /* parameter block applied and the key block compressed */
+    unsigned char empty_tag[TAG_BYTES];
 } MacObject;
 
 static PyTypeObject MacType;
+
+/* noinline: its frame holds the key block, so mac_init can burn it once this returns. */
+static NOINLINE void mac_set_key(MacObject *self, const void *key, Py_ssize_t len) {
+    unsigned char key_block[BLOCK_BYTES];
+    uint64_t h[8];
+    memset(key_block, 0, BLOCK_BYTES);
+    memcpy(key_block, key, len);
+    for (int i = 0; i < 8; i++) h[i] = BLAKE2B_IV[i];
+    h[0] ^= 0x01010000ULL ^ ((uint64_t)len << 8) ^ TAG_BYTES; /* fanout 1, depth 1 */
+    memcpy(self->keyed, h, sizeof h);
+    blake2b_compress(self->keyed, key_block, BLOCK_BYTES, 0);
+    blake2b_compress(h, key_block, BLOCK_BYTES, 1); /* empty data: the key block is the last block */
+    for (int i = 0; i < TAG_BYTES / 8; i++) put_u64(self->empty_tag + 8 * i, h[i]);
+    wipe(key_block, sizeof key_block);
+}
 
 static int mac_init(MacObject *self, PyObject *args, PyObject *kwargs) {
     static char *keywords[] = {"key", NULL};
@@ -139,33 +179,34 @@ static int mac_init(MacObject *self, PyObject *args, PyObject *kwargs) {
         PyErr_SetString(PyExc_ValueError, "a BLAKE2b key is 1 to 64 bytes");
         return -1;
     }
-    memset(self->key_block, 0, BLOCK_BYTES);
-    memcpy(self->key_block, key.buf, key.len);
-    for (int i = 0; i < 8; i++) self->start[i] = BLAKE2B_IV[i];
-    self->start[0] ^= 0x01010000ULL ^ ((uint64_t)key.len << 8) ^ TAG_BYTES; /* fanout 1, depth 1 */
+    mac_set_key(self, key.buf, key.len);
+    burn_stack();
     PyBuffer_Release(&key);
-    memcpy(self->keyed, self->start, sizeof self->keyed);
-    blake2b_compress(self->keyed, self->key_block, BLOCK_BYTES, 0);
     return 0;
+}
+
+static void mac_dealloc(MacObject *self) {
+    wipe(self->keyed, sizeof self->keyed); /* the keyed state forges tags as well as the key does */
+    wipe(self->empty_tag, sizeof self->empty_tag);
+    Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
 static void mac_tag(const MacObject *mac, const unsigned char *data, Py_ssize_t len, unsigned char *tag) {
     uint64_t h[8];
     unsigned char last[BLOCK_BYTES];
-    if (len == 0) { /* the key block is the last block */
-        memcpy(h, mac->start, sizeof h);
-        blake2b_compress(h, mac->key_block, BLOCK_BYTES, 1);
-    } else {
-        memcpy(h, mac->keyed, sizeof h);
-        uint64_t done = BLOCK_BYTES;
-        for (; len > BLOCK_BYTES; data += BLOCK_BYTES, len -= BLOCK_BYTES) {
-            done += BLOCK_BYTES;
-            blake2b_compress(h, data, done, 0);
-        }
-        memset(last, 0, BLOCK_BYTES);
-        memcpy(last, data, len);
-        blake2b_compress(h, last, done + (uint64_t)len, 1);
+    if (len == 0) {
+        memcpy(tag, mac->empty_tag, TAG_BYTES);
+        return;
     }
+    memcpy(h, mac->keyed, sizeof h);
+    uint64_t done = BLOCK_BYTES;
+    for (; len > BLOCK_BYTES; data += BLOCK_BYTES, len -= BLOCK_BYTES) {
+        done += BLOCK_BYTES;
+        blake2b_compress(h, data, done, 0);
+    }
+    memset(last, 0, BLOCK_BYTES);
+    memcpy(last, data, len);
+    blake2b_compress(h, last, done + (uint64_t)len, 1);
     for (int i = 0; i < TAG_BYTES / 8; i++) put_u64(tag + 8 * i, h[i]);
 }
 
@@ -191,6 +232,7 @@ static PyTypeObject MacType = {
     .tp_doc = "Mac(key): keyed BLAKE2b-128, the bus's message tag",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)mac_init,
+    .tp_dealloc = (destructor)mac_dealloc,
     .tp_methods = mac_methods,
 };
 
@@ -650,8 +692,10 @@ static PyObject *decode_body(PyObject *module, PyObject *const *args, Py_ssize_t
 
 /* -- replay protection -------------------------------------------------------------------------
  * protocol/replay.py's ReplayGuard, same rules, same errors: per (source id, channel) stream the
- * highest sequence accepted and a 64-message bitmap behind it, plus the freshness window. Streams
- * live in a slot array on a least-recently-used list; a dict finds a stream's slot by its key. */
+ * highest sequence accepted and a 64-message bitmap behind it, the latest t_pub_ns accepted and
+ * the start of the source's current life (restarts below its old numbers), plus the freshness
+ * window. Streams live in a slot array on a least-recently-used list; a dict finds a stream's
+ * slot by its key. */
 
 #define WINDOW 64
 #define RESTART_JUMP 1000000
@@ -659,6 +703,7 @@ static PyObject *decode_body(PyObject *module, PyObject *const *args, Py_ssize_t
 typedef struct {
     PyObject *key; /* (source_id, channel); NULL for a free slot */
     uint64_t first, highest, seen;
+    int64_t newest, floor; /* latest t_pub_ns accepted; current life's first (INT64_MIN: none) */
     Py_ssize_t older, newer; /* LRU neighbours, -1 at the ends; `newer` links free slots */
 } Stream;
 
@@ -747,7 +792,7 @@ static int drop_stream(ReplayGuardObject *self, Py_ssize_t i) {
     return status;
 }
 
-static Py_ssize_t new_stream(ReplayGuardObject *self, PyObject *key, uint64_t seq) {
+static Py_ssize_t new_stream(ReplayGuardObject *self, PyObject *key, uint64_t seq, int64_t t_pub_ns) {
     if (self->count >= self->max_streams && drop_stream(self, self->oldest) < 0) return -1;
     if (self->free < 0) { /* grow: double, up to max_streams */
         Py_ssize_t capacity = self->capacity ? self->capacity * 2 : 16;
@@ -773,7 +818,7 @@ static Py_ssize_t new_stream(ReplayGuardObject *self, PyObject *key, uint64_t se
     if (status < 0) return -1;
     Stream *s = &self->streams[i];
     self->free = s->newer;
-    *s = (Stream){Py_NewRef(key), seq, seq, 1, -1, -1};
+    *s = (Stream){Py_NewRef(key), seq, seq, 1, t_pub_ns, INT64_MIN, -1, -1};
     link_newest(self, i);
     self->count++;
     return i;
@@ -815,7 +860,7 @@ static int guard_check(ReplayGuardObject *self, long source_id, PyObject *key, u
     }
     PyObject *slot = PyDict_GetItemWithError(self->slot_of, key);
     if (slot == NULL) {
-        if (PyErr_Occurred() || new_stream(self, key, seq) < 0) return -1;
+        if (PyErr_Occurred() || new_stream(self, key, seq, t_pub_ns) < 0) return -1;
         *lost = 0;
         return 0;
     }
@@ -825,26 +870,37 @@ static int guard_check(ReplayGuardObject *self, long source_id, PyObject *key, u
         unlink_stream(self, i);
         link_newest(self, i);
     }
+    if (t_pub_ns < s->floor) {
+        reject(reason_replay, source_id,
+               PyUnicode_FromFormat("seq %llu was published before its source restarted", (unsigned long long)seq));
+        return -1;
+    }
     if (seq > s->highest) {
         uint64_t ahead = seq - s->highest;
         s->seen = ahead < WINDOW ? (s->seen << ahead) | 1 : 1;
         s->highest = seq;
+        if (t_pub_ns > s->newest) s->newest = t_pub_ns;
         /* a jump of a million or more is a restarted publisher, not a million lost messages */
         *lost = ahead <= RESTART_JUMP ? (long long)ahead - 1 : 0;
         return 0;
     }
     uint64_t behind = s->highest - seq;
-    if (behind >= WINDOW) {
-        reject(reason_replay, source_id, PyUnicode_FromFormat("seq %llu is %llu behind", (unsigned long long)seq,
-                                                              (unsigned long long)behind));
-        return -1;
+    if (behind >= WINDOW || s->seen >> behind & 1) {
+        if (!has_now || t_pub_ns <= s->newest) {
+            reject(reason_replay, source_id,
+                   behind >= WINDOW ? PyUnicode_FromFormat("seq %llu is %llu behind", (unsigned long long)seq,
+                                                           (unsigned long long)behind)
+                                    : PyUnicode_FromFormat("seq %llu already seen", (unsigned long long)seq));
+            return -1;
+        }
+        /* fresh and published after everything accepted here, so none of it: the source restarted
+         * below its old numbers (its wall clock stepped back); follow the new life */
+        *s = (Stream){s->key, seq, seq, 1, t_pub_ns, t_pub_ns, s->older, s->newer};
+        *lost = 0;
+        return 0;
     }
-    uint64_t bit = (uint64_t)1 << behind;
-    if (s->seen & bit) {
-        reject(reason_replay, source_id, PyUnicode_FromFormat("seq %llu already seen", (unsigned long long)seq));
-        return -1;
-    }
-    s->seen |= bit;
+    s->seen |= (uint64_t)1 << behind;
+    if (t_pub_ns > s->newest) s->newest = t_pub_ns;
     *lost = seq > s->first ? -1 : 0;
     return 0;
 }
@@ -929,7 +985,7 @@ static PyTypeObject ReplayGuardType = {
 /* -- the whole receive path ----------------------------------------------------------------------
  * Receiver(macs_by_id, max_bytes, routes, replay, envelope_cls): one per Bus, holding what
  * the bus's receive path consults. routes maps channel -> route with attributes type_id, plan and
- * freshness_exempt (rascal.bus._Route); replay is a ReplayGuard of this module.
+ * replay_exempt (rascal.bus._Route); replay is a ReplayGuard of this module.
  *
  * accept(data, recv_ns, recv_local_ns, check_freshness)
  *   -> (route, msg, envelope, lost)  a message for a subscribed channel, checked, numbered, decoded
@@ -944,7 +1000,7 @@ typedef struct {
     Py_ssize_t max_bytes;
 } ReceiverObject;
 
-static PyObject *name_type_id, *name_plan, *name_freshness_exempt;
+static PyObject *name_type_id, *name_plan, *name_replay_exempt;
 
 static int receiver_init(ReceiverObject *self, PyObject *args, PyObject *kwargs) {
     static char *keywords[] = {"macs_by_id", "max_bytes", "routes", "replay", "envelope_cls", NULL};
@@ -1033,18 +1089,20 @@ static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py
         result = status < 0 ? NULL : Py_NewRef(Py_None);
         goto done;
     }
-    long exempt = route_long(route, name_freshness_exempt);
+    long exempt = route_long(route, name_replay_exempt);
     if (exempt == -1 && PyErr_Occurred()) goto done;
-    PyObject *source = PyLong_FromLong(source_id);
-    key = source == NULL ? NULL : PyTuple_Pack(2, source, channel);
-    Py_XDECREF(source);
-    if (key == NULL) goto done;
     uint64_t seq = get_u64(m.p + 12);
     int64_t t_pub_ns = (int64_t)get_u64(m.p + 28);
-    long long lost;
-    if (guard_check((ReplayGuardObject *)self->replay, source_id, key, seq, t_pub_ns, check_freshness && !exempt,
-                    recv_ns, &lost) < 0)
-        goto done;
+    long long lost = 0;
+    if (!exempt) { /* the time protocol judges its own messages (rascal.bus.REPLAY_EXEMPT) */
+        PyObject *source = PyLong_FromLong(source_id);
+        key = source == NULL ? NULL : PyTuple_Pack(2, source, channel);
+        Py_XDECREF(source);
+        if (key == NULL) goto done;
+        if (guard_check((ReplayGuardObject *)self->replay, source_id, key, seq, t_pub_ns, check_freshness, recv_ns,
+                        &lost) < 0)
+            goto done;
+    }
     PyObject *fields[9] = {
         Py_NewRef(channel),
         PyLong_FromLong(source_id),
@@ -1102,8 +1160,8 @@ static struct PyModuleDef module_def = {
 PyMODINIT_FUNC PyInit__fastpath(void) {
     name_type_id = PyUnicode_InternFromString("type_id");
     name_plan = PyUnicode_InternFromString("plan");
-    name_freshness_exempt = PyUnicode_InternFromString("freshness_exempt");
-    if (!name_type_id || !name_plan || !name_freshness_exempt) return NULL;
+    name_replay_exempt = PyUnicode_InternFromString("replay_exempt");
+    if (!name_type_id || !name_plan || !name_replay_exempt) return NULL;
     PyObject *errors = PyImport_ImportModule("protocol.errors");
     if (errors == NULL) return NULL;
     ProtocolError = PyObject_GetAttrString(errors, "ProtocolError");

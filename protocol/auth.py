@@ -10,6 +10,7 @@ Keyed BLAKE2b (RFC 7693) is a MAC by construction, needs no HMAC wrapper, and co
     1 = "<64 hex digits: 32 random bytes>"
 
 Several keys allow rotation: receivers accept any listed key id, senders sign with ``active``.
+A key file that another user owns, or that group or others may access, is refused.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import hashlib
 import hmac
 import os
 import secrets
+import stat
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,13 +35,16 @@ DEFAULT_KEY_FILE = Path(os.environ.get("XDG_CONFIG_HOME", Path.home() / ".config
 
 
 class KeyFileError(ValueError):
-    """The key file is missing or malformed; the message names the file and the entry."""
+    """The key file is missing, malformed or open to other users; the message names the file and
+    the entry or the fix."""
 
 
-@dataclass(frozen=True)
+# repr=False: a Keyring's repr reaches logs, tracebacks and test output, so it is written by hand.
+@dataclass(frozen=True, repr=False)
 class Keyring:
     """Keys by id (1..65535) and the id used for signing."""
 
+    # Immutable bytes, held as long as the process runs: Python cannot wipe them.
     keys: dict[int, bytes]
     active: int
     # Keyed hash states by key id, made once; copy() one before use.
@@ -57,6 +62,9 @@ class Keyring:
             key_id: hashlib.blake2b(key=key, digest_size=FRAGMENT_TAG_BYTES) for key_id, key in self.keys.items()
         }
         object.__setattr__(self, "fragment_keyed", fragment_keyed)
+
+    def __repr__(self) -> str:
+        return f"Keyring(key_ids={sorted(self.keys)}, active={self.active})"
 
     def sign(self, data: bytes | memoryview) -> bytes:
         hasher = self.keyed[self.active].copy()
@@ -93,7 +101,7 @@ def load_keyring(path: Path) -> Keyring:
     """Read a key file, naming the file and the offending entry on any error."""
     try:
         # TOML is UTF-8 by definition, whatever the locale says.
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        doc = tomllib.loads(_read_private(path).decode("utf-8"))
     except FileNotFoundError:
         raise KeyFileError(f"{path}: key file not found (create one with `rascal keygen {path}`)") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -126,17 +134,50 @@ def load_keyring(path: Path) -> Keyring:
     return Keyring(keys, active)
 
 
+def _read_private(path: Path) -> bytes:
+    """The key file's bytes, once it is known to be a regular file that only this user can read
+    or change. The open file is checked, not the path, so the file checked is the file read."""
+    # O_NONBLOCK: a FIFO in the key file's place must fail the check, not hang the open.
+    fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+    try:
+        _check_private(path, os.fstat(fd))
+        with open(fd, "rb", closefd=False) as file:
+            return file.read()
+    finally:
+        os.close(fd)
+
+
+def _check_private(path: Path, status: os.stat_result) -> None:
+    if not stat.S_ISREG(status.st_mode):
+        raise KeyFileError(f"{path}: not a regular file")
+    uid = os.geteuid()
+    if status.st_uid != uid:
+        # Its owner can change the keys, and root is no exception: root reads only its own key file.
+        raise KeyFileError(
+            f"{path}: key file is owned by uid {status.st_uid}, not by uid {uid} that uses it "
+            f"(make it this user's own: `chown {uid} {path}`)"
+        )
+    mode = stat.S_IMODE(status.st_mode)
+    if mode & 0o077:
+        raise KeyFileError(
+            f"{path}: key file mode {mode:04o} gives group or others access to the keys "
+            f"(make it owner-only: `chmod 600 {path}`)"
+        )
+
+
 def write_keyring(path: Path, keyring: Keyring, *, overwrite: bool = False) -> None:
     """Write a key file readable only by its owner; atomically, so concurrent readers never see
     half a file. Without ``overwrite`` an existing file wins (FileExistsError)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     lines = ["# rascal bus keys (keep private)", f"active = {keyring.active}", "[keys]"]
     lines += [f'{key_id} = "{key.hex()}"' for key_id, key in sorted(keyring.keys.items())]
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as out:
-        out.write("\n".join(lines) + "\n")
+    # A fresh file under a name nobody can guess: a file or symlink planted at a predictable name
+    # would be truncated, or followed to write the keys wherever its planter chose.
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(16)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
     try:
+        with os.fdopen(fd, "w") as out:
+            out.write("\n".join(lines) + "\n")
         if overwrite:
             os.replace(tmp, path)
         else:

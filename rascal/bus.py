@@ -35,9 +35,11 @@ MAX_REJECT_SOURCES = 256
 MAX_CHANNELS = 1024
 LATENCY_SAMPLES = 1024
 ARRIVAL_SAMPLES = 2048
-# Channels whose freshness the time protocol judges itself: an unsynchronised client must be
-# able to talk to the master, and the master to it.
-FRESHNESS_EXEMPT = frozenset({channels.TIME_SYNC})
+# Channels whose freshness and uniqueness the time protocol judges itself (a reply counts only
+# if it echoes an outstanding request's nonce, once): an unsynchronised client must be able to
+# talk to the master, and the master to it, also after a restart with its wall clock stepped
+# back, which puts its sequence numbers behind the master's replay window for good.
+REPLAY_EXEMPT = frozenset({channels.TIME_SYNC})
 # Channels stamped on arrival by the kernel: time sync, whose accuracy the asymmetric wake-up
 # latency of the two ends (~50-100 us on loopback) would otherwise limit.
 KERNEL_TIMESTAMPED = frozenset({channels.TIME_SYNC})
@@ -72,12 +74,12 @@ class ChannelStats:
 class _Route:
     """Everything the receive path needs for one subscribed channel, found with one lookup."""
 
-    __slots__ = ("channel", "decode", "freshness_exempt", "handlers", "latest", "plan", "type_id", "wake")
+    __slots__ = ("channel", "decode", "handlers", "latest", "plan", "replay_exempt", "type_id", "wake")
 
     def __init__(self, channel: str, type_id: int) -> None:
         self.channel = channel
         self.type_id = type_id
-        self.freshness_exempt = channel in FRESHNESS_EXEMPT
+        self.replay_exempt = channel in REPLAY_EXEMPT
         info = info_for_id(type_id)
         self.decode = info.decode
         self.plan = info.plan
@@ -292,8 +294,10 @@ class Bus:
         route = self._subs.get(channel)
         if route is None and not self._raw_handlers:
             return None  # shares a port with a channel we want; not ours
-        fresh = self._check_freshness and channel not in FRESHNESS_EXEMPT
-        lost = self.replay.check(source_id, channel, seq, t_pub_ns, recv_ns if fresh else None)
+        if channel in REPLAY_EXEMPT:
+            lost = 0
+        else:
+            lost = self.replay.check(source_id, channel, seq, t_pub_ns, recv_ns if self._check_freshness else None)
         msg = None
         if route is not None:
             if type_id != route.type_id:

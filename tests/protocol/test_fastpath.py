@@ -257,12 +257,15 @@ def _outcome(guard: Any, *args: Any) -> Any:
 
 @needs_native
 def test_the_c_replay_guard_keeps_python_s_rules() -> None:
-    """Same answers and errors, op for op, over 30,000 checks on few streams (eviction at 5)."""
+    """Same answers and errors, op for op, over 30,000 checks on few streams (eviction at 5),
+    with a clock moving on and publishers restarting below their old numbers."""
     limits = ReplayLimits(max_age_ns=1_000, max_future_ns=500, max_streams=5)
     fast, slow = ReplayGuard(limits), PythonReplayGuard(limits)
     assert type(fast) is not PythonReplayGuard and fast.limits is limits
     rng = random.Random(3)
     seqs = {key: 10**15 for key in range(8)}
+    clock = 10_000
+    new_lives = old_lives_refused = 0
     for step in range(30_000):
         key = rng.randrange(8)
         source_id, channel = key % 3 + 1, f"CH{key // 3}"
@@ -271,16 +274,27 @@ def test_the_c_replay_guard_keeps_python_s_rules() -> None:
             fast.forget(source_id, channel)
             slow.forget(source_id, channel)
             continue
-        if move < 0.6:
+        clock += rng.choice((0, 1, 100))
+        if move < 0.55:
             seqs[key] += rng.choice((1, 1, 1, 2, 5, 63, 64, 70, 1_000_001))
+            seq = seqs[key]
+        elif move < 0.6:  # a restart with the wall clock stepped back
+            seqs[key] -= rng.choice((64, 10**7))
             seq = seqs[key]
         else:
             seq = seqs[key] - rng.choice((0, 1, 2, 30, 63, 64, 65, 10**6))
-        now = rng.choice((None, 10_000))
-        t_pub = 10_000 + rng.choice((0, -999, -1_000, -1_001, 500, 501, -(2**62), 2**62))
+        now = rng.choice((None, clock, clock))
+        t_pub = clock + rng.choice((0, 0, -1, -999, -1_000, -1_001, 500, 501))
+        if rng.random() < 0.01:
+            t_pub = clock + rng.choice((-(2**62), 2**62))
         args = (source_id, channel, seq, t_pub, now)
-        assert _outcome(fast, *args) == _outcome(slow, *args), (step, args)
+        floor = getattr(slow._streams.get((source_id, channel)), "floor", None)
+        outcome = _outcome(slow, *args)
+        assert _outcome(fast, *args) == outcome, (step, args)
         assert len(fast) == len(slow)
+        new_lives += floor is not None and slow._streams[(source_id, channel)].floor != floor
+        old_lives_refused += "before its source restarted" in str(outcome)
+    assert new_lives > 300 and old_lives_refused > 300, (new_lives, old_lives_refused)
 
 
 # -- the whole bus, with and without C -------------------------------------------------------

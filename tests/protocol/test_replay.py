@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import random
+import time
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol import channels
+from protocol.auth import Keyring
 from protocol.errors import ProtocolError, Reason
+from protocol.messages import WheelSpeed
 from protocol.replay import WINDOW, ReplayGuard, ReplayLimits
+from rascal.bus import Bus
+from rascal.clock import MasterClock
 
 NOW = 1_700_000_000_000_000_000
 BASE = 1_700_000_000_000_000  # a publisher's first seq: wall-clock microseconds at start
@@ -160,6 +166,136 @@ def test_a_restarted_publisher_with_a_higher_seq_base_is_accepted() -> None:
         check(guard, restarted + i)
     for i in (0, 250, 499):
         assert reason_of(guard, BASE + i) is Reason.REPLAY
+
+
+MS = 1_000_000
+STEP_BACK_US = 10_000_000  # the sender's wall clock stepped back 10 s
+
+
+def old_life(guard: ReplayGuard, messages: int = 300) -> list[tuple[int, int]]:
+    """A publisher at 100 Hz, synchronised: (seq, t_pub_ns) of each message, all accepted."""
+    sent = [(BASE + i, NOW + 10 * MS * i) for i in range(messages)]
+    for seq, t_pub in sent:
+        assert check(guard, seq, t_pub_ns=t_pub, now_ns=t_pub + MS) == 0
+    return sent
+
+
+def test_a_publisher_restarted_with_its_clock_stepped_back_is_accepted_at_once() -> None:
+    """The sender restarts 0.3 s after its last message with its wall clock (so its seq base)
+    10 s back: its first fresh message starts a new life, with no loss counted, and it goes on."""
+    guard = ReplayGuard()
+    sent = old_life(guard)
+    restart_ns = sent[-1][1] + 300 * MS
+    restarted = sent[-1][0] + 300_000 - STEP_BACK_US  # its wall clock in us when it opened the bus
+    assert check(guard, restarted, t_pub_ns=restart_ns, now_ns=restart_ns) == 0
+    for i in range(1, 100):
+        t_pub = restart_ns + 10 * MS * i
+        assert check(guard, restarted + i, t_pub_ns=t_pub, now_ns=t_pub) == 0
+    assert check(guard, restarted + 102, t_pub_ns=restart_ns + 1020 * MS, now_ns=restart_ns + 1020 * MS) == 2
+
+
+def test_the_previous_life_cannot_be_replayed_into_the_new_one() -> None:
+    """Once a source restarted below its old numbers, its old life's messages, whose seqs are now
+    far ahead, are replays, however fresh; so are the new life's own, repeated."""
+    guard = ReplayGuard()
+    sent = old_life(guard)
+    restart_ns = sent[-1][1] + 300 * MS
+    restarted = sent[0][0] - STEP_BACK_US
+    check(guard, restarted, t_pub_ns=restart_ns, now_ns=restart_ns)
+    check(guard, restarted + 1, t_pub_ns=restart_ns + 10 * MS, now_ns=restart_ns + 10 * MS)
+    now = restart_ns + 20 * MS
+    for seq, t_pub in sent[-150:]:  # the old life's last 1.5 s: all still fresh
+        assert reason_of(guard, seq, t_pub_ns=t_pub, now_ns=now) is Reason.REPLAY
+    assert reason_of(guard, restarted, t_pub_ns=restart_ns, now_ns=now) is Reason.REPLAY
+    assert reason_of(guard, restarted + 1, t_pub_ns=restart_ns + 10 * MS, now_ns=now) is Reason.REPLAY
+    # Published before the new life's first message seen: old life or new, not accepted.
+    assert reason_of(guard, restarted - 1, t_pub_ns=restart_ns - 1, now_ns=now) is Reason.REPLAY
+    assert check(guard, restarted + 2, t_pub_ns=now, now_ns=now) == 0
+
+
+def test_a_refused_message_not_published_after_the_stream_s_newest_is_still_a_replay() -> None:
+    """Far behind, or already seen, and published no later than the newest message accepted on
+    the stream: REPLAY, fresh or not. An unsynchronised receiver (now_ns=None) cannot judge
+    freshness, so it never takes a refused message for a new life."""
+    guard = ReplayGuard()
+    sent = old_life(guard)
+    newest = sent[-1][1]
+    now = newest + MS
+    far_behind = sent[0][0] - STEP_BACK_US
+    for t_pub in (newest, newest - 1, newest - 500 * MS):
+        assert reason_of(guard, far_behind, t_pub_ns=t_pub, now_ns=now) is Reason.REPLAY
+        assert reason_of(guard, sent[-1][0], t_pub_ns=t_pub, now_ns=now) is Reason.REPLAY
+    assert reason_of(guard, sent[-WINDOW][0], t_pub_ns=newest, now_ns=now) is Reason.REPLAY
+    assert reason_of(guard, far_behind, t_pub_ns=newest + 1, now_ns=None) is Reason.REPLAY
+    assert reason_of(guard, far_behind, t_pub_ns=now + 3_000 * MS, now_ns=now) is Reason.FUTURE
+    assert check(guard, sent[-1][0] + 1, t_pub_ns=now, now_ns=now) == 0  # the stream is unharmed
+
+
+@settings(max_examples=300, deadline=None, derandomize=True)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(("send", "send", "send", "restart", "replay", "replay")),
+            st.integers(-(10**8), 10**8),
+            st.integers(1, 3_000 * MS),
+        ),
+        max_size=150,
+    )
+)
+def test_genuine_traffic_across_restarts_is_accepted_and_every_replay_refused(
+    events: list[tuple[str, int, int]],
+) -> None:
+    """A synchronised receiver; a sender publishing in order with rising shared time, restarting
+    at any seq base (below or above its last), and an attacker replaying anything it sent: every
+    genuine message is accepted, and no message is ever accepted twice."""
+    guard = ReplayGuard()
+    seq, t_pub = BASE, NOW
+    sent: list[tuple[int, int]] = []
+    for action, number, elapsed in events:
+        if action == "replay" and sent:
+            old_seq, old_t_pub = sent[number % len(sent)]
+            assert reason_of(guard, old_seq, t_pub_ns=old_t_pub, now_ns=t_pub) in (Reason.REPLAY, Reason.STALE)
+            continue
+        seq = BASE + number if action == "restart" else seq + 1
+        t_pub += elapsed
+        check(guard, seq, t_pub_ns=t_pub, now_ns=t_pub)
+        sent.append((seq, t_pub))
+
+
+def receive_seqs(bus: Bus, seqs: list[int], wanted: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while wanted not in seqs and time.monotonic() < deadline:
+        bus.poll(0.05)
+
+
+def test_a_bus_publisher_restarted_with_its_clock_stepped_back_is_heard_within_a_second(
+    bus_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Over loopback multicast: a publisher restarted while the host's wall clock, from which it
+    takes its seq base, is 10 s back (its shared time is right), is heard again at once."""
+    keys = Keyring.generate()
+    receiver = Bus.open(bus_url, source_id=2, clock=MasterClock(), keyring=keys)
+    seqs: list[int] = []
+    receiver.subscribe(channels.WHEEL_SPEED, lambda msg, envelope: seqs.append(envelope.seq))
+    first = Bus.open(bus_url, source_id=1, clock=MasterClock(), keyring=keys)
+    old = [first.publish(channels.WHEEL_SPEED, WheelSpeed(1.0, 0.0)) for _ in range(5)]
+    receive_seqs(receiver, seqs, old[-1], 2.0)
+    assert seqs == old
+    first.close()
+    clock = MasterClock()  # synchronised shared time, read before the wall clock steps back
+    stepped_back_ns = time.time_ns() - STEP_BACK_US * 1000
+    with monkeypatch.context() as patch:
+        patch.setattr(time, "time_ns", lambda: stepped_back_ns)
+        restarted = Bus.open(bus_url, source_id=1, clock=clock, keyring=keys)
+    start = time.monotonic()
+    new = [restarted.publish(channels.WHEEL_SPEED, WheelSpeed(2.0, 0.0)) for _ in range(3)]
+    receive_seqs(receiver, seqs, new[-1], 1.0)
+    elapsed_s = time.monotonic() - start
+    assert new[0] < old[0] - STEP_BACK_US // 2  # the restarted publisher numbers below its old life
+    assert seqs == old + new and elapsed_s < 1.0
+    assert not receiver.rejects
+    for bus in (receiver, restarted):
+        bus.close()
 
 
 def test_streams_are_independent_per_source_and_channel() -> None:

@@ -565,18 +565,18 @@ def render_channels() -> str:
     from protocol import channels
     from protocol.schema import info_for_class
     from protocol.transport import DEFAULT_URL
-    from rascal.bus import FRESHNESS_EXEMPT
+    from rascal.bus import REPLAY_EXEMPT
 
     base = urlsplit(DEFAULT_URL).port
     assert base is not None
     lines = [
         f"| channel | type_id | message | port offset (span {channels.DEFAULT_PORT_SPAN}) | default port "
-        "| freshness checked |",
+        "| replay and freshness checked |",
         "|---|--:|---|--:|--:|---|",
     ]
     for channel, cls in channels.CHANNEL_TYPES.items():
         offset = channels.port_offset(channel)
-        fresh = "no (exempt)" if channel in FRESHNESS_EXEMPT else "yes"
+        fresh = "no (section 13)" if channel in REPLAY_EXEMPT else "yes"
         lines.append(
             f"| `{channel}` | {info_for_class(cls).type_id} | {cls.__name__} | {offset} | {base + offset} | {fresh} |"
         )

@@ -6,6 +6,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import pytest
+
 from protocol.auth import load_keyring
 from rascal.bus import Bus
 from rascal.clock import MasterClock, SharedClock
@@ -50,3 +52,36 @@ def test_requests_slow_down_once_the_estimate_settles_and_it_stays_synced(bus_ur
     slow_share = CALL_PERIOD_S / (SETTLED_REQUEST_PERIOD_NS / 1e9)
     assert len(after_settling) <= calls_after * slow_share + 1, answered_at
     assert status.state == SyncState.SYNCED and status.error_bound_ns < 1_000_000, status
+
+
+def test_a_client_restarted_with_its_wall_clock_stepped_back_synchronises_at_once(
+    bus_url: str, key_file: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Its sequence numbers (wall-clock based) now lie 10 s behind the master's replay window,
+    and an unsynchronised client cannot pass a freshness test: TIME_SYNC has no window, so the
+    master still answers and the client synchronises within a second (SPEC.md section 10)."""
+    keys = load_keyring(key_file)
+    master_bus = Bus.open(bus_url, source_id=1, clock=MasterClock(), keyring=keys)
+    TimeMaster(master_bus)
+
+    def sync(clock: SharedClock, client: TimeClient, timeout_s: float) -> float:
+        start = time.monotonic()
+        while not clock.synced and time.monotonic() - start < timeout_s:
+            client.request()
+            for bus in (master_bus, client.bus):
+                bus.poll(0.01)
+        return time.monotonic() - start
+
+    first_clock = SharedClock()
+    first = Bus.open(bus_url, source_id=12, clock=first_clock, keyring=keys)
+    assert sync(first_clock, TimeClient(first, first_clock), 5.0) < 5.0
+    first.close()
+    stepped_back_ns = time.time_ns() - 10_000_000_000
+    with monkeypatch.context() as patch:
+        patch.setattr(time, "time_ns", lambda: stepped_back_ns)
+        clock = SharedClock()
+        restarted = Bus.open(bus_url, source_id=12, clock=clock, keyring=keys)
+    assert sync(clock, TimeClient(restarted, clock), 2.0) < 1.0
+    assert not master_bus.rejects
+    for bus in (master_bus, restarted):
+        bus.close()
