@@ -280,10 +280,15 @@ class ZmqSubscriberTransport(Transport):
     def __init__(self, endpoint: str) -> None:
         import zmq  # imported here: only bridge users pay for it
 
+        from protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
+
         self._zmq = zmq
         self._context = zmq.Context.instance()
         self._socket = self._context.socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
+        # A frame over the bus's largest message (no bridge sends one): libzmq hangs up on that peer, for
+        # good, rather than take it in.
+        self._socket.setsockopt(zmq.MAXMSGSIZE, DEFAULT_MAX_MESSAGE_BYTES)
         self._socket.connect(endpoint)
         self._poller = zmq.Poller()
         self._poller.register(self._socket, zmq.POLLIN)

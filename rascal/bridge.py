@@ -16,6 +16,7 @@ from protocol.codec import Opened
 from rascal.bustools import tool_bus
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:7700"
+MAX_SUBSCRIPTION_BYTES = 1024  # what a subscriber sends is a channel name (and a short handshake)
 
 
 class Bridge:
@@ -26,6 +27,7 @@ class Bridge:
         self.bus, self.time_client = tool_bus(url)
         self._socket = zmq.Context.instance().socket(zmq.PUB)
         self._socket.setsockopt(zmq.LINGER, 0)
+        self._socket.setsockopt(zmq.MAXMSGSIZE, MAX_SUBSCRIPTION_BYTES)  # a bigger one drops that subscriber
         self._socket.bind(endpoint)
         self.forwarded = 0
         self.bus.subscribe_raw(self._forward)

@@ -42,6 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("recording", nargs="?", type=Path, help="replay this MCAP recording instead of the live bus")
     parser.add_argument("--port", type=int, default=8090, help="HTTP port of the page (0: any free port)")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                        help="a host name the page may be reached by (IPs and localhost always work)")  # fmt: skip
     parser.add_argument("--deployment", default=str(DEFAULT_DEPLOYMENT), help="deployment TOML: bus and course")
     parser.add_argument("--course", help="RDDF file drawn as the corridor (default: the deployment's)")
     parser.add_argument("--origin", help="ENU origin 'lat,lon[,alt]' (default: the deployment's)")
@@ -68,6 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     config = ViewerConfig(
         host=args.host,
         port=args.port,
+        allowed_hosts=tuple(args.allow_host),
         course=course,
         origin=args.origin if args.origin is not None else deployment.origin,
         foxglove=args.foxglove,

@@ -9,7 +9,9 @@ Topics (all in frame ``enu``; the vehicle is frame ``vehicle``):
 * ``/tf`` FrameTransform: ``enu`` -> ``vehicle`` from the navigation solution.
 
 foxglove-sdk is an optional dependency (``pip install -e '.[foxglove]'``). Its server runs on its
-own threads and drops a slow client's oldest messages, so logging never blocks the bus loop.
+own threads and drops a slow client's oldest messages, so logging never blocks the bus loop. It
+checks neither Host nor Origin, so it listens at an unguessable loopback address behind a
+:class:`~rascal.view.guard.WebSocketGuard` that does, on the advertised port.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import math
 import zlib
 from typing import Any
 
+from rascal.view.guard import Access, WebSocketGuard, unguessable_loopback
 from rascal.view.state import ViewState
 
 try:
@@ -82,12 +85,18 @@ def _headed(points: list[tuple[float, float]]) -> list[tuple[float, float, float
 
 
 class FoxgloveBridge:
-    """A foxglove-sdk server on ``host:port`` with the topics above, in its own context."""
+    """A foxglove-sdk server, reached through a guard on ``host:port``, with the topics above, in its own context."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8765) -> None:
+    def __init__(self, host: str = "127.0.0.1", port: int = 8765, access: Access | None = None) -> None:
         self.context = foxglove.Context()
-        self.server = foxglove.start_server(name="rascal", host=host, port=port, context=self.context)
-        self.url = f"ws://{host}:{self.server.port}"
+        hidden = unguessable_loopback()
+        self.server = foxglove.start_server(name="rascal", host=hidden, port=0, context=self.context)
+        try:
+            self.guard = WebSocketGuard(host, port, (hidden, self.server.port), access or Access.of(host))
+        except OSError:
+            self.server.stop()
+            raise
+        self.url = f"ws://{host}:{self.guard.port}"
         ctx = self.context
         self.map = fc.GridChannel("/rascal/map", context=ctx)
         self.obstacles = fc.SceneUpdateChannel("/rascal/obstacles", context=ctx)
@@ -171,4 +180,5 @@ class FoxgloveBridge:
         )
 
     def close(self) -> None:
-        self.server.stop()
+        self.server.stop()  # first: the relays end as their upstream closes
+        self.guard.close()

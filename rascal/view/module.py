@@ -12,6 +12,7 @@ from protocol.codec import Envelope, Opened
 from rascal.config import setting
 from rascal.deployment import Deployment, ModuleSpec
 from rascal.module import Module, Runtime
+from rascal.view.guard import Access
 from rascal.view.server import FrameHub, ViewServer, ViewServerError
 from rascal.view.state import DRAWN_CHANNELS, ViewState
 
@@ -24,6 +25,7 @@ HEALTH_PERIOD_S = 0.5
 class ViewerConfig:
     host: str = setting("127.0.0.1", "address the page is served on (loopback unless you mean otherwise)")
     port: int = setting(8090, "HTTP port of the page (0: any free port)")
+    allowed_hosts: tuple[str, ...] = setting((), "host names the page may be reached by besides IPs and localhost")
     course: str = setting("", "RDDF file whose corridor is drawn (empty: none)")
     origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
     frame_rate_hz: float = setting(10.0, "frames per second pushed to the page")
@@ -64,14 +66,15 @@ def open_outputs(config: ViewerConfig) -> tuple[ViewServer, Any]:
     """The page's server (started) and, if asked for, the Foxglove bridge."""
     if not config.frame_rate_hz > 0:
         raise ValueError(f"frame_rate_hz must be positive, got {config.frame_rate_hz}")
-    server = ViewServer(FrameHub(), config.host, config.port)
+    access = Access.of(config.host, config.allowed_hosts)
+    server = ViewServer(FrameHub(), config.host, config.port, access)
     server.start()
     foxglove = None
     if config.foxglove:
         try:
             from rascal.view.foxglove_bridge import FoxgloveBridge
 
-            foxglove = FoxgloveBridge(config.host, config.foxglove_port)
+            foxglove = FoxgloveBridge(config.host, config.foxglove_port, access)
         except Exception as exc:  # ImportError, or whatever foxglove-sdk raises for a port it cannot bind
             server.close()
             raise ViewServerError(f"cannot serve Foxglove on {config.host}:{config.foxglove_port}: {exc}") from None
@@ -137,7 +140,9 @@ class Viewer(Module):
 
     def status_detail(self) -> str:
         url = self.server.url if self.server else "not serving"
-        return f"{url}; {len(self.state.modules)} modules heard, map {self.state.map_seq}"
+        detail = f"{url}; {len(self.state.modules)} modules heard, map {self.state.map_seq}"
+        refused = self.server.refusals.snapshot() if self.server else {}
+        return f"{detail}; refused {refused}" if refused else detail
 
 
 def viewer_spec(deployment: Deployment, host: str, port: int) -> ModuleSpec:

@@ -4,6 +4,8 @@ The bus loop only ever calls :meth:`FrameHub.publish`: it serialises a topic onc
 under a lock, never touching a socket. Each browser gets its own thread that waits for a newer
 version of any topic and sends the *latest* payload of each changed topic; versions a slow client
 missed are skipped, never queued, so a client can fall behind by at most one frame per topic.
+Requests must name this machine in their Host (see rascal.view.guard); threads are capped and a
+client stalled for ``timeout_s``, reading or being written to, is dropped.
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from __future__ import annotations
 import json
 import threading
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer
 from importlib import resources
 from typing import Any
+
+from rascal.view.guard import MAX_CONNECTIONS, TIMEOUT_S, Access, CappedThreads, Refusals
 
 KEEPALIVE_S = 10.0
 STATIC_FILES = {"/": ("index.html", "text/html; charset=utf-8"), "/view.js": ("view.js", "text/javascript")}
@@ -72,14 +76,24 @@ class FrameHub:
 class ViewServer:
     """Serves the page, its script, ``/events`` (SSE) and ``/state.json`` (every topic, once)."""
 
-    def __init__(self, hub: FrameHub, host: str = "127.0.0.1", port: int = 8090) -> None:
+    def __init__(
+        self,
+        hub: FrameHub,
+        host: str = "127.0.0.1",
+        port: int = 8090,
+        access: Access | None = None,
+        max_connections: int = MAX_CONNECTIONS,
+        timeout_s: float = TIMEOUT_S,
+    ) -> None:
+        """``access``: the names the page may be reached by (default: ``host`` and loopback)."""
         self.hub = hub
-        handler = type("Handler", (_Handler,), {"hub": hub})
+        self.refusals = Refusals("viewer")
+        attrs = {"hub": hub, "access": access or Access.of(host), "refusals": self.refusals, "timeout": timeout_s}
+        handler = type("Handler", (_Handler,), attrs)
         try:
-            self.httpd = ThreadingHTTPServer((host, port), handler)
+            self.httpd = _HTTPServer((host, port), handler, max_connections, self.refusals)
         except OSError as exc:
             raise ViewServerError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}") from None
-        self.httpd.daemon_threads = True
         self._thread = threading.Thread(target=self.httpd.serve_forever, name="view-http", daemon=True)
 
     @property
@@ -97,13 +111,24 @@ class ViewServer:
         self._thread.join(timeout=5)
 
 
+class _HTTPServer(CappedThreads, HTTPServer):
+    pass
+
+
 class _Handler(BaseHTTPRequestHandler):
     hub: FrameHub
+    access: Access
+    refusals: Refusals
     protocol_version = "HTTP/1.1"
 
     def do_GET(self) -> None:
         path = self.path.split("?", 1)[0]
-        if path == "/events":
+        hosts = self.headers.get_all("Host") or []
+        if len(hosts) != 1 or not self.access.host_ok(hosts[0]):
+            self.refusals.add("host", f"a request for Host {hosts} (DNS rebinding? else see --allow-host)")
+            self.close_connection = True
+            self._send(b"Host not allowed (see --allow-host)\n", "text/plain", HTTPStatus.FORBIDDEN)
+        elif path == "/events":
             self._events()
         elif path == "/state.json":
             topics = {t: self.hub.latest(t) for t in ("course", "map", "scene", "trail", "health")}
@@ -115,8 +140,8 @@ class _Handler(BaseHTTPRequestHandler):
         else:
             self.send_error(HTTPStatus.NOT_FOUND)
 
-    def _send(self, body: bytes, content_type: str) -> None:
-        self.send_response(HTTPStatus.OK)
+    def _send(self, body: bytes, content_type: str, status: HTTPStatus = HTTPStatus.OK) -> None:
+        self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")

@@ -9,11 +9,14 @@ import time
 from pathlib import Path
 
 import pytest
+import zmq
 
 from protocol import channels
 from protocol.auth import Keyring, load_keyring
-from protocol.codec import Envelope
+from protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope
 from protocol.messages import ModuleStatus, ObstacleList
+from protocol.transport import ZmqSubscriberTransport
+from rascal.bridge import MAX_SUBSCRIPTION_BYTES, Bridge
 from rascal.bus import Bus
 from rascal.clock import MasterClock, SharedClock
 from rascal.timeclient import TimeClient
@@ -199,3 +202,39 @@ def test_zmq_bridge_carries_verified_messages_over_tcp(bus_url: str, key_file: P
     finally:
         bridge.wait(timeout=10)
     assert len(got) >= 20 and ground.rejected_total() == 0
+
+
+def test_a_zmq_message_over_the_bus_limit_is_dropped_not_buffered() -> None:
+    """No bridge sends a frame over the bus's largest message: the subscriber hangs up on a peer
+    that does rather than take it in (libzmq does not reconnect after such a protocol error)."""
+    pub = zmq.Context.instance().socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    sub = ZmqSubscriberTransport(f"tcp://127.0.0.1:{port}")
+    sub.listen_all()
+    largest = b"a" * DEFAULT_MAX_MESSAGE_BYTES
+    got: list[bytes] = []
+    try:
+        assert sub._socket.getsockopt(zmq.MAXMSGSIZE) == DEFAULT_MAX_MESSAGE_BYTES
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:  # again until the subscription has arrived
+            pub.send_multipart([b"X\0", largest])
+            sub.receive(got.append, 0.1, 10)
+        assert got and got[0] == largest  # the largest the bus carries still passes
+        pub.send_multipart([b"X\0", b"b" * (DEFAULT_MAX_MESSAGE_BYTES + 1)])
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            pub.send_multipart([b"X\0", b"small"])
+            sub.receive(got.append, 0.05, 10)
+        assert max(len(message) for message in got) == DEFAULT_MAX_MESSAGE_BYTES
+    finally:
+        sub.close()
+        pub.close()
+
+
+def test_the_zmq_bridge_takes_only_subscription_sized_frames() -> None:
+    bridge = Bridge("mem://zmq-bridge-limit", "tcp://127.0.0.1:0", ".*")
+    try:
+        assert bridge._socket.getsockopt(zmq.MAXMSGSIZE) == MAX_SUBSCRIPTION_BYTES
+    finally:
+        bridge.close()

@@ -4,8 +4,11 @@ server over a real socket, the viewer process on a real bus, and the replay of a
 from __future__ import annotations
 
 import base64
+import contextlib
+import http.client
 import json
 import math
+import select
 import socket
 import subprocess
 import sys
@@ -14,6 +17,7 @@ import time
 import urllib.request
 import uuid
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +46,7 @@ from protocol.messages import (
 from rascal.bus import Bus
 from rascal.clock import MasterClock
 from rascal.recording import RecordingWriter
+from rascal.view.guard import Access
 from rascal.view.server import FrameHub, ViewServer
 from rascal.view.state import MAX_NAMES, ViewState
 from tests.conftest import ROOT
@@ -230,7 +235,7 @@ def test_a_client_that_stops_reading_holds_up_neither_the_publisher_nor_other_cl
     stuck = socket.create_connection((host, port), timeout=5)
     stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     try:
-        stuck.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")  # ...and never reads a byte
+        stuck.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # ...and never reads a byte
         big = "x" * 100_000
         for i in range(300):  # 30 MB offered: far beyond any socket buffer
             hub.publish("map", {"seq": i, "cells": big})
@@ -241,6 +246,117 @@ def test_a_client_that_stops_reading_holds_up_neither_the_publisher_nor_other_cl
         reader.start()
         reader.join(timeout=10)
         assert [(name, value["seq"]) for name, value in got] == [("map", 299)]  # the newest, nothing queued
+    finally:
+        stuck.close()
+        server.close()
+
+
+def get(port: int, path: str, *hosts: str) -> tuple[int, bytes]:
+    """One GET over a fresh loopback connection with these Host headers: (status, body)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    try:
+        conn.putrequest("GET", path, skip_host=True)
+        for host in hosts:
+            conn.putheader("Host", host)
+        conn.endheaders()
+        response = conn.getresponse()
+        return response.status, response.read()
+    finally:
+        conn.close()
+
+
+def served(port: int, timeout_s: float, between: Callable[[], object] = lambda: None) -> bool:
+    """Whether /state.json is served within ``timeout_s``, calling ``between`` before each try
+    (a connection over the cap is closed at once: tried again)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        between()
+        with contextlib.suppress(ConnectionError):
+            if get(port, "/state.json", "127.0.0.1")[0] == 200:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def test_a_request_naming_another_host_gets_no_state(capsys: pytest.CaptureFixture[str]) -> None:
+    """DNS rebinding: a page on evil.example points its name at 127.0.0.1 and reads /state.json as
+    its own. Its requests say Host: evil.example; IP literals, localhost and listed names pass."""
+    hub = FrameHub()
+    hub.publish("scene", {"secret": 1})
+    server = ViewServer(hub, "127.0.0.1", 0, Access.of("127.0.0.1", ["viewer.lan"]))
+    server.start()
+    port = server.httpd.server_address[1]
+    try:
+        refused = ["evil.example", f"evil.example:{port}", "localhost.evil.example", "127.0.0.1.evil.example", "",
+                   "127.0.0.1@evil.example", f"127.0.0.1:{port}/x", "[::1"]  # fmt: skip
+        for host in refused:
+            status, body = get(port, "/state.json", host)
+            assert (status, body) == (403, b"Host not allowed (see --allow-host)\n"), host
+        assert get(port, "/state.json", "127.0.0.1", "evil.example")[0] == 403  # two Hosts: refused
+        assert get(port, "/state.json")[0] == 403  # none
+        for host in [f"127.0.0.1:{port}", f"LocalHost:{port}", "localhost", "[::1]:9000", "127.0.0.2", "viewer.lan:1"]:
+            status, body = get(port, "/state.json", host)
+            assert status == 200 and json.loads(body)["scene"] == {"secret": 1}, host
+        assert server.refusals.counts == {"host": len(refused) + 2}
+    finally:
+        server.close()
+    assert capsys.readouterr().err.count("refused") == 1  # logged once, then counted
+
+
+def test_connections_over_the_cap_are_closed_at_once_and_start_no_thread() -> None:
+    cap, extra = 4, 6
+    server = ViewServer(FrameHub(), "127.0.0.1", 0, max_connections=cap, timeout_s=10.0)
+    server.start()
+    address = server.httpd.server_address[:2]
+    before = threading.active_count()
+    clients = [socket.create_connection(address, timeout=5) for _ in range(cap + extra)]
+    closed: set[socket.socket] = set()
+    try:
+        deadline = time.monotonic() + 10
+        while len(closed) < extra and time.monotonic() < deadline:
+            readable, _, _ = select.select([c for c in clients if c not in closed], [], [], 0.1)
+            closed.update(c for c in readable if c.recv(1) == b"")
+        assert len(closed) == extra and closed.isdisjoint(clients[:cap])  # the first ones hold the slots
+        assert threading.active_count() - before <= cap
+        assert server.refusals.counts == {"busy": extra}
+        for client in clients:
+            client.close()
+        assert served(address[1], 5.0)  # the held slots are freed as their clients go
+    finally:
+        for client in clients:
+            client.close()
+        server.close()
+
+
+def test_a_stalled_client_is_dropped_after_the_timeout() -> None:
+    """Slowloris: a request head that never ends, or nothing at all, holds a thread only ``timeout_s``."""
+    server = ViewServer(FrameHub(), "127.0.0.1", 0, timeout_s=0.5)
+    server.start()
+    address = server.httpd.server_address[:2]
+    try:
+        for opening in (b"", b"GET /state.json HTTP/1.1\r\nHost: 127.0.0.1\r\n"):
+            with socket.create_connection(address, timeout=5) as client:
+                client.sendall(opening)
+                started = time.monotonic()
+                assert client.recv(1024) == b""  # closed by the server, before our own 5 s timeout
+                assert 0.4 < time.monotonic() - started < 3.0
+    finally:
+        server.close()
+
+
+def test_an_event_stream_that_stops_reading_frees_its_slot_after_the_timeout() -> None:
+    hub = FrameHub()
+    server = ViewServer(hub, "127.0.0.1", 0, max_connections=1, timeout_s=0.5)
+    server.start()
+    address = server.httpd.server_address[:2]
+    stuck = socket.create_connection(address, timeout=5)
+    stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    try:
+        stuck.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")  # ...and never reads a byte
+        big = "x" * 100_000
+        # New frames until the stuck stream's send stalls for the timeout and its thread ends.
+        assert served(address[1], 20.0, lambda: hub.publish("map", {"cells": big}))
+        assert server.refusals.counts["busy"] >= 1  # it did hold the only slot meanwhile
     finally:
         stuck.close()
         server.close()

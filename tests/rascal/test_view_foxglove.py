@@ -5,10 +5,12 @@ each (the map's cells inside the Grid). And the recordings' JSON channels are in
 from __future__ import annotations
 
 import json
+import socket
 import struct
 import time
 import zlib
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
@@ -24,7 +26,7 @@ from tests.rascal.test_view import free_port, publish_drive, recording, snapshot
 websocket = pytest.importorskip("websocket", reason="websocket-client (a dev dependency) is not installed")
 pytest.importorskip("foxglove", reason="foxglove-sdk (the optional 'foxglove' extra) is not installed")
 
-from rascal.view.foxglove_bridge import TOPICS  # noqa: E402  (needs foxglove-sdk)
+from rascal.view.foxglove_bridge import TOPICS, FoxgloveBridge  # noqa: E402  (needs foxglove-sdk)
 
 MESSAGE_DATA_OPCODE = 1
 
@@ -78,6 +80,40 @@ def test_a_foxglove_client_receives_map_scene_path_and_vehicle(bus_url: str, key
         bus.close()
         stop(child)
     assert child.returncode == 0, log.read_text()
+
+
+def test_the_foxglove_socket_refuses_other_sites_and_relays_the_rest() -> None:
+    """Any web page may open a WebSocket to loopback: the guard in front of foxglove-sdk's server
+    (which checks nothing, and listens at an unguessable loopback address) checks Host and Origin."""
+    bridge = FoxgloveBridge("127.0.0.1", 0)
+    url = f"ws://127.0.0.1:{bridge.guard.port}"
+    refused: list[dict[str, Any]] = [
+        {"origin": "https://evil.example"},
+        {"origin": "null"},  # a sandboxed frame of any site
+        {"host": "evil.example", "suppress_origin": True},  # DNS rebinding
+    ]
+    accepted: list[dict[str, Any]] = [
+        {"suppress_origin": True},  # not a browser
+        {"origin": "https://app.foxglove.dev"},
+        {"origin": f"http://localhost:{bridge.guard.port}", "host": "localhost"},
+    ]
+    try:
+        assert bridge.url == url
+        with pytest.raises(ConnectionRefusedError):  # foxglove-sdk's own port is not on 127.0.0.1
+            socket.create_connection(("127.0.0.1", bridge.server.port), timeout=5).close()
+        for options in refused:
+            with pytest.raises(websocket.WebSocketBadStatusException) as refusal:
+                websocket.create_connection(url, subprotocols=["foxglove.sdk.v1"], timeout=5, **options)
+            assert refusal.value.status_code == 403, options
+        for options in accepted:
+            client = websocket.create_connection(url, subprotocols=["foxglove.sdk.v1"], timeout=5, **options)
+            try:
+                assert json.loads(client.recv())["op"] == "serverInfo", options
+            finally:
+                client.close()
+        assert bridge.guard.refusals.counts == {"origin": 2, "host": 1}
+    finally:
+        bridge.close()
 
 
 def test_recorded_json_channels_are_what_foxglove_opens(tmp_path: Path, key_file: Path) -> None:
