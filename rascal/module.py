@@ -33,6 +33,10 @@ from rascal.timeclient import TimeClient, TimeMaster
 from rascal.timesync import SyncState
 
 HEARTBEAT_PERIOD_S = 1.0
+# Datagrams handled per wait before due tasks run. A module slower than its inputs (starved of
+# CPU, or planning in a handler) otherwise keeps finding more waiting and never returns to its
+# tasks: the brain on a loaded host published paths for 3 s without a heartbeat and was killed.
+POLL_BUDGET = 64
 TIME_REQUEST_PERIOD_S = 0.1
 
 RUN_DIR_ENV = "RASCAL_RUN_DIR"  # set by the supervisor: where a module may leave run artefacts
@@ -204,7 +208,7 @@ class Runtime:
         next_due = self._tasks[0].due_ns if self._tasks else now + 100_000_000
         if end_ns is not None:
             next_due = min(next_due, end_ns)
-        self.bus.poll(max(0.0, (next_due - now) / 1e9))
+        self.bus.poll(max(0.0, (next_due - now) / 1e9), POLL_BUDGET)
         now = time.monotonic_ns()
         while self._tasks and self._tasks[0].due_ns <= now:
             task = heapq.heappop(self._tasks)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import threading
+import time
 import uuid
 from dataclasses import dataclass
 
@@ -10,7 +12,7 @@ import pytest
 
 from protocol import channels
 from protocol.auth import Keyring
-from protocol.messages import ModuleState, ModuleStatus
+from protocol.messages import ModuleState, ModuleStatus, ObstacleList
 from protocol.transport import MemTransport
 from rascal.bus import Bus
 from rascal.clock import MasterClock
@@ -90,3 +92,55 @@ def test_set_period_retimes_running_tasks_staggered() -> None:
     assert runtime.set_period("missing", 1.0) == 0
     with pytest.raises(ValueError):
         runtime.set_period("watch", 0.0)
+
+
+class Slow(Module):
+    """A module whose handler is slower than its input arrives."""
+
+    name = "slow"
+    default_source_id = 42
+    Config = CounterConfig
+
+    def on_start(self) -> None:
+        self.handled = 0
+        self.bus.subscribe(channels.OBSTACLES_BEACON, self.on_beacon)
+
+    def on_beacon(self, _msg: object, _envelope: object) -> None:
+        self.handled += 1
+        time.sleep(0.002)
+
+
+def test_a_module_slower_than_its_input_still_runs_its_tasks_and_heartbeats() -> None:
+    """1,000 messages/s into a handler that takes 2 ms: the backlog never drains, and the
+    heartbeat must still go out every second (the supervisor kills a module silent for 3 s)."""
+    keyring = Keyring.generate()
+    hub = uuid.uuid4().hex
+    listener = Bus(MemTransport(hub), 41, keyring, MasterClock())
+    statuses: list[ModuleStatus] = []
+    listener.subscribe(channels.MODULE_STATUS, lambda msg, env: statuses.append(msg))
+    feeder = Bus(MemTransport(hub), 43, keyring, MasterClock())
+    beacon = ObstacleList(0, 0, ())
+    stop = threading.Event()
+
+    def feed() -> None:
+        deadline = time.monotonic() + 3.0
+        while not stop.is_set() and time.monotonic() < deadline:
+            for _ in range(10):
+                feeder.publish(channels.OBSTACLES_BEACON, beacon)
+            time.sleep(0.01)
+
+    runtime = make_runtime(hub, 42, keyring)
+    module = Slow(CounterConfig(), runtime)
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    started = time.monotonic()
+    try:
+        runtime.run(module, duration_s=2.5)
+    finally:
+        stop.set()
+        thread.join(5.0)
+    elapsed_s = time.monotonic() - started
+    listener.poll(0.0, 100_000)
+    beats = [s for s in statuses if s.module == "slow"]
+    assert elapsed_s < 3.0  # the run ended on time, too
+    assert len(beats) >= 3, f"{len(beats)} heartbeats in {elapsed_s:.1f} s, {module.handled} messages handled"
