@@ -35,7 +35,8 @@ test: $(STAMP) $(BROWSER)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
-# The whole stack driving the default scenario once per seed (about 5.5 min each; run it alone).
+# The drive leaderboard (benchmarks/README.md): the standard suite, about 70 min (estimated); run it alone.
+# DRIVE_ARGS="--suite quick" is a 2-3 min smoke test; also --suite full, --seeds, --km, --plan.
 drive-bench: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_drive $(DRIVE_ARGS)
 

@@ -5,8 +5,9 @@ Measures: completion and time; mean speed against the mean the RDDF and curvatur
 course path's own speed profile); cross-track error of the true position to the newest planned
 path (RMS and max); collisions and corridor exits (the simulator counts them); entries onto
 terrain hazards (the simulator drives through ditches and over berms, so the referee counts each
-time the footprint comes onto ground more than 0.15 m off level); the minimum clearance between
-the vehicle's footprint and any obstacle.
+time the footprint comes onto ground more than 0.15 m off level); stalls (the vehicle below
+0.1 m/s for over 30 s before the finish, once per such stop: a leaderboard's "agent blocked");
+the minimum clearance between the vehicle's footprint and any obstacle.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ FINISH_DISTANCE_M = 5.0  # control stops 2-3 m short of the last waypoint; rasca
 CLEARANCE_REACH_M = 15.0  # obstacles farther from the vehicle's centre cannot set the minimum
 HAZARD_STEP_M = 0.15  # ground this far off level under the footprint is on a hazard (fusion's profile step)
 FOOTPRINT_SAMPLES = (7, 4)  # points along and across the footprint where the ground is looked up
+STALL_SPEED_MPS = 0.1  # slower than this is standing
+STALL_TIME_S = 30.0  # standing longer than this before the finish is a stall
 
 
 @dataclass(frozen=True)
@@ -44,6 +47,7 @@ class DriveMeasures:
     collisions: int
     corridor_exits: int
     hazard_entries: int  # times the footprint came onto a ditch or berm
+    stalls: int  # stops of over STALL_TIME_S before the finish
     min_clearance_m: float
     samples: int
 
@@ -69,6 +73,9 @@ class Referee:
         self._footprint = np.column_stack([along.ravel(), across.ravel()])
         self.hazard_entries = 0
         self._on_hazard = False
+        self.stalls = 0
+        self._standing_since_s: float | None = None  # scenario time the current stop began
+        self._stall_counted = False
         self.path_xy: np.ndarray | None = None
         self.cross_track: list[float] = []
         self.min_clearance_m = math.inf
@@ -90,6 +97,7 @@ class Referee:
             self.finish_time_s = truth.scenario_time_s
         if self.finish_time_s is not None:
             return  # after the finish only the totals matter
+        self._watch_stall(truth)
         if self.path_xy is not None and truth.speed_mps > 0.5:
             self.cross_track.append(distance_to_polyline(self.path_xy, truth.east_m, truth.north_m))
         on_hazard = self._footprint_on_hazard(truth)
@@ -100,6 +108,18 @@ class Referee:
             d = np.hypot(self._obstacle_xy[:, 0] - truth.east_m, self._obstacle_xy[:, 1] - truth.north_m)
             for index in np.flatnonzero(d < self._reach):
                 self.min_clearance_m = min(self.min_clearance_m, clearance_m(truth, self.obstacles[index], self.params))
+
+    def _watch_stall(self, truth: SimTruth) -> None:
+        """Count a stop once, when it has lasted over STALL_TIME_S (on scenario time, so missed
+        truth samples do not shorten it)."""
+        if abs(truth.speed_mps) >= STALL_SPEED_MPS:
+            self._standing_since_s = None
+            return
+        if self._standing_since_s is None:
+            self._standing_since_s, self._stall_counted = truth.scenario_time_s, False
+        elif not self._stall_counted and truth.scenario_time_s - self._standing_since_s > STALL_TIME_S:
+            self.stalls += 1
+            self._stall_counted = True
 
     def _footprint_on_hazard(self, truth: SimTruth) -> bool:
         """Whether ground under the vehicle's footprint is more than a step off level."""
@@ -136,6 +156,7 @@ class Referee:
             collisions=last.collisions if last else 0,
             corridor_exits=last.corridor_exits if last else 0,
             hazard_entries=self.hazard_entries,
+            stalls=self.stalls,
             min_clearance_m=self.min_clearance_m,
             samples=self.samples,
         )

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.bench_drive import Stopped, _raise_stopped, meets_targets, run_stack, seeded_deployment
+from benchmarks.bench_drive import Stopped, _raise_stopped, run_stack, seeded_deployment
+from benchmarks.leaderboard import meets_targets
 from modules.sim.scenario import load_scenario
 from rascal.deployment import load_deployment
 
