@@ -11,8 +11,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+from brain.planning.hybrid import HybridSettings
 from brain.planning.pursuit import Bicycle
 from rascal.config import setting
+
+SEARCH_METHODS = ("hybrid", "lattice")
 
 
 @dataclass(frozen=True)
@@ -66,7 +69,11 @@ class PlannerConfig:
     time_weight: float = setting(
         10.0, "score per second it takes to drive a candidate under its speed caps (curvature, clearance, cost)"
     )
-    # A* fallback (Kratos: footprint-summed cost grid, 8-connected, binary heap).
+    # Fallback search: Hybrid A* over the vehicle's poses, or Kratos' A* over cells (footprint-summed
+    # cost grid, 8-connected, binary heap) smoothed and pursued. The cost and heuristic settings serve both.
+    search_method: str = setting(
+        "hybrid", "'hybrid' (Hybrid A* over poses: drivable as found) or 'lattice' (cell A*, smoothed, pursued)"
+    )
     search_stride: int = setting(
         3, "A* lattice step in grid cells (1 = every cell); a channel it misses gets finer ones, down to every cell"
     )
@@ -81,6 +88,16 @@ class PlannerConfig:
     )
     search_heuristic_weight: float = setting(1.5, "A* heuristic inflation on top (>1 trades optimality for speed)")
     goal_margin_m: float = setting(2.0, "the search goal stays this far inside the grid window")
+    hybrid_step_m: float = setting(1.0, "Hybrid A*: arc length of a motion primitive (longer than a bin's diagonal)")
+    hybrid_cell_m: float = setting(0.5, "Hybrid A*: side of a closed-set bin")
+    hybrid_heading_bins: int = setting(72, "Hybrid A*: closed-set heading bins (5 degrees); primitives turn whole bins")
+    hybrid_steer_weight: float = setting(0.2, "Hybrid A*: extra cost per metre steered at full lock")
+    hybrid_steer_change_weight: float = setting(0.5, "Hybrid A*: extra cost per full-lock swing of the steering")
+    hybrid_heuristic_cell_m: float = setting(1.0, "Hybrid A*: cells of the coarse obstacle-aware cost-to-go")
+    hybrid_analytic_every: int = setting(10, "Hybrid A*: a Dubins curve to the goal is tried every so many expansions")
+    hybrid_max_expansions: int = setting(
+        1500, "Hybrid A*: expansions before it settles for the node nearest the goal (~80 ms in pure Python)"
+    )
     pursuit_lookahead_m: float = setting(
         2.0, "a searched path is published as the track pure pursuit this far ahead makes"
     )
@@ -111,8 +128,12 @@ class PlannerConfig:
     )
 
     def __post_init__(self) -> None:
+        if self.search_method not in SEARCH_METHODS:
+            raise ValueError(f"PlannerConfig.search_method: one of {SEARCH_METHODS}, got {self.search_method!r}")
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name == "search_method":
+                continue
             values = value if isinstance(value, tuple) else (value,)
             if not values or not all(isinstance(v, int | float) and math.isfinite(v) and v >= 0 for v in values):
                 raise ValueError(f"PlannerConfig.{f.name}: must be finite and not negative, got {value!r}")
@@ -134,12 +155,21 @@ class PlannerConfig:
             "pursuit_lookahead_m",
             "slow_speed_mps",
             "search_room_m",
+            "hybrid_step_m",
+            "hybrid_cell_m",
+            "hybrid_heuristic_cell_m",
         )
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"PlannerConfig.{name}: must be positive")
         if self.search_stride < 1 or self.max_offsets < 1:
             raise ValueError("PlannerConfig.search_stride and max_offsets: must be at least 1")
+        if min(self.hybrid_heading_bins, self.hybrid_analytic_every, self.hybrid_max_expansions) < 1:
+            raise ValueError("PlannerConfig.hybrid_heading_bins, analytic_every and max_expansions: must be at least 1")
+        if self.hybrid_step_m <= self.hybrid_cell_m * math.sqrt(2.0):
+            raise ValueError("PlannerConfig.hybrid_step_m: must exceed a bin's diagonal, so every step leaves its bin")
+        if self.hybrid_step_m / self.turning_radius_m < math.tau / self.hybrid_heading_bins:
+            raise ValueError("PlannerConfig.hybrid_step_m: a step must turn at least one heading bin at full lock")
         if self.search_heuristic_weight < 1.0:
             raise ValueError("PlannerConfig.search_heuristic_weight: must be at least 1")
         if self.rear_overhang_m >= self.vehicle_length_m:
@@ -171,6 +201,22 @@ class PlannerConfig:
     def turning_radius_m(self) -> float:
         """The rear axle's tightest turn."""
         return self.wheelbase_m / math.tan(self.max_steering_rad)
+
+    @property
+    def hybrid(self) -> HybridSettings:
+        """The Hybrid A* fallback's settings, turning no tighter than the vehicle."""
+        return HybridSettings(
+            step_m=self.hybrid_step_m,
+            cell_m=self.hybrid_cell_m,
+            heading_bins=self.hybrid_heading_bins,
+            min_radius_m=self.turning_radius_m,
+            steer_weight=self.hybrid_steer_weight,
+            steer_change_weight=self.hybrid_steer_change_weight,
+            heuristic_weight=self.search_heuristic_weight,
+            heuristic_cell_m=self.hybrid_heuristic_cell_m,
+            analytic_every=self.hybrid_analytic_every,
+            max_expansions=self.hybrid_max_expansions,
+        )
 
     @property
     def bicycle(self) -> Bicycle:

@@ -1,6 +1,6 @@
 """The brain's planner, sans IO: pose and fused map in, a protocol `Path` out, once per cycle.
 
-RASCAL's behaviour (paper II.C), with Kratos' search (4.5.3) as the fallback:
+RASCAL's behaviour (paper II.C), with a search as the fallback (Hybrid A*, or Kratos' 4.5.3):
 
 1. Keep the current path while it is clear: its polyline over the next ``horizon_m`` passes the
    `PathGate` (hazard clearance, corridor) and the vehicle is still near it. Same ``path_id``.
@@ -12,11 +12,14 @@ RASCAL's behaviour (paper II.C), with Kratos' search (4.5.3) as the fallback:
    is clear well beyond the stopping distance will do, ending in a stop short of the hazard, as
    long as the cells show a way past it (and never to leave slow mode); nearing that stop, a
    search that gets through takes over while there is still room to turn.
-3. If none is left, command ``slow_speed_mps`` (slow mode) and search a way with A* over the
-   footprint-cost grid to the furthest reachable goal along the course in the window, smoothed
-   (`brain.planning.search`, `brain.planning.smoothing`), and publish the track the vehicle
-   makes along it (`brain.planning.pursuit`). A search path that reached its goal is kept while
-   it stays clear; candidates are tried again every cycle to leave slow mode.
+3. If none is left, command ``slow_speed_mps`` (slow mode) and search a way to the furthest
+   reachable goal along the course in the window. By default (``search_method="hybrid"``)
+   Hybrid A* over the vehicle's poses (`brain.planning.hybrid`): its arcs are drivable and were
+   checked as the gate checks them, so its polyline is published as it is. With ``"lattice"``,
+   A* over the footprint-cost grid, smoothed (`brain.planning.search`,
+   `brain.planning.smoothing`), and the track the vehicle makes along it is published
+   (`brain.planning.pursuit`). A search path that reached its goal is kept while it stays
+   clear; candidates are tried again every cycle to leave slow mode.
 4. If nothing is reachable, stand still: a one-point path at speed 0, in slow mode. So does a
    map window that does not contain the vehicle, and the end of the course.
 
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -44,6 +48,7 @@ from brain.planning.checks import PathGate
 from brain.planning.config import PlannerConfig
 from brain.planning.frame import CorridorFrame
 from brain.planning.hazards import HazardField
+from brain.planning.hybrid import Terrain, hybrid_search
 from brain.planning.profile import LateralProfile, swerve
 from brain.planning.pursuit import pursue
 from brain.planning.search import Lattice, SearchResult, search
@@ -345,9 +350,12 @@ class _Cycle:
         point, normal, half_width = goal
         # Thresholds at cell centres such that any point between two free centres passes the gate.
         slack = cfg.check_spacing_m / 2.0 + res * math.sqrt(2.0) / 2.0
-        free = self.gate.hazards.clearance_m[1:-1, 1:-1] >= cfg.clearance_m + slack
-        free &= self.planner.corridor.mask(window, cfg.corridor_clearance_m + slack)
-        self._space = _SearchSpace((start[0], start[1]), point - half_width * normal, point + half_width * normal, free)
+        inside = self.planner.corridor.mask(window, cfg.corridor_clearance_m + slack)
+        free = inside & (self.gate.hazards.clearance_m[1:-1, 1:-1] >= cfg.clearance_m + slack)
+        heading = math.atan2(-normal[0], normal[1])  # the course's: the normal turned clockwise
+        self._space = _SearchSpace(
+            (start[0], start[1]), point - half_width * normal, point + half_width * normal, heading, free, inside
+        )
         return self._space
 
     def lattice_search(self, space: _SearchSpace, stride: int) -> SearchResult:
@@ -361,22 +369,26 @@ class _Cycle:
         # Short of the goal, end nearest it, and among equals nearest the centre line.
         middle = (space.goal_a + space.goal_b) / 2.0
         shortfall = distance + 0.01 * np.hypot(east - middle[0], north - middle[1])
-        hazards = self.gate.hazards
-        weight = 1.0 + cfg.search_cost_weight * hazards.footprint_cost[rows, cols].astype(float)
-        # Keep to the middle of gaps: a path hugging a wall round a corner is one the vehicle,
-        # turning no tighter than its radius, swings wide of (and into the wall).
-        spare = (hazards.clearance_m[rows + 1, cols + 1] - cfg.clearance_m) / cfg.search_room_m
-        weight += cfg.search_room_weight * np.clip(1.0 - spare, 0.0, 1.0)
         return search(
             lattice,
             lattice.node_of(space.start),
             goal_mask,
             distance,
-            weight,
+            self.step_weight[rows, cols],
             window.resolution_m,
             cfg.search_heuristic_weight * (1.0 + cfg.search_cost_weight * cfg.search_unseen_cost),
             shortfall,
         )
+
+    @functools.cached_property
+    def step_weight(self) -> FloatArray:
+        """Each cell's search cost per metre: 1 + weight x footprint-mean cost, plus the room term.
+        Keep to the middle of gaps: a path hugging a wall round a corner is one the vehicle,
+        turning no tighter than its radius, swings wide of (and into the wall)."""
+        cfg, hazards = self.cfg, self.gate.hazards
+        weight = 1.0 + cfg.search_cost_weight * hazards.footprint_cost.astype(float)
+        spare = (hazards.clearance_m[1:-1, 1:-1] - cfg.clearance_m) / cfg.search_room_m
+        return weight + cfg.search_room_weight * np.clip(1.0 - spare, 0.0, 1.0)
 
     def way_through(self, s_end: float) -> bool:
         """Whether any free path of cells joins the vehicle to the goal (a labelling, no search)."""
@@ -415,17 +427,44 @@ class _Cycle:
         return found is not None and found[1]
 
     def search_path(self, s_end: float) -> tuple[FloatArray, bool, int] | None:
-        """A* from the vehicle's cell to the furthest goal in the window, smoothed and gated
-        (once a cycle: the partial path's check and the search step share it)."""
+        """The searched path to the furthest goal in the window, gated, whether it reached the
+        goal, and the expansions (once a cycle: the partial path's check and the search step
+        share it)."""
         if not self._searched:
             self._found, self._searched = self._search_path(s_end), True
         return self._found
 
     def _search_path(self, s_end: float) -> tuple[FloatArray, bool, int] | None:
-        cfg, window = self.cfg, self.gate.hazards.window
         space = self.search_space(s_end)
         if space is None:
             return None
+        if self.cfg.search_method == "hybrid":
+            return self.hybrid_path(space)
+        return self.lattice_path(space, s_end)
+
+    def hybrid_path(self, space: _SearchSpace) -> tuple[FloatArray, bool, int] | None:
+        """Hybrid A* from the vehicle's pose: its chords are what the vehicle drives and what
+        the gate was checked against during the search, so they are published as they are."""
+        gate = self.gate
+        terrain = Terrain(
+            gate.hazards.window,
+            gate.hazards.clearance_m,
+            space.inside,
+            space.free,
+            self.step_weight,
+            gate.clearance_m + gate.spacing_m / 2.0,
+            gate.spacing_m,
+        )
+        pose = (self.east, self.north, self.yaw)
+        result = hybrid_search(terrain, self.cfg.hybrid, pose, space.goal_a, space.goal_b, space.goal_heading)
+        points, reached = self.nose_clear_end(result.points, result.reached_goal)
+        if len(points) < 2 or not gate.check(points).ok:
+            return None
+        return points, reached, result.expansions
+
+    def lattice_path(self, space: _SearchSpace, s_end: float) -> tuple[FloatArray, bool, int] | None:
+        """A* over the cell lattice, smoothed, published as the track pure pursuit makes along it."""
+        cfg, window = self.cfg, self.gate.hazards.window
         free = space.free
         result = self.lattice_search(space, cfg.search_stride)
         stride = cfg.search_stride
@@ -438,9 +477,7 @@ class _Cycle:
         if len(result.cells) < 2:
             return None
         centres = np.column_stack(window.centre_of(result.cells[:, 0], result.cells[:, 1]))
-        reached = result.reached_goal
-        while len(centres) >= 2 and not self.gate.nose_clear(centres):
-            centres, reached = centres[:-1], False
+        centres, reached = self.nose_clear_end(centres, result.reached_goal)
         if len(centres) < 2:
             return None
         for candidate in (smooth(centres, FreeCells(window, free)), centres):
@@ -452,6 +489,12 @@ class _Cycle:
             if self.gate.check(points).ok:
                 return points, reached, result.expansions
         return None
+
+    def nose_clear_end(self, points: FloatArray, reached: bool) -> tuple[FloatArray, bool]:
+        """The path cut back until a stop at its end leaves the nose clear (then not reached)."""
+        while len(points) >= 2 and not self.gate.nose_clear(points):
+            points, reached = points[:-1], False
+        return points, reached
 
     def goal(self, s_end: float) -> tuple[FloatArray, FloatArray, float] | None:
         """The centre-line point furthest along (up to ``s_end``) before the course leaves the
@@ -571,7 +614,9 @@ class _SearchSpace:
     start: tuple[int, int]  # the vehicle's cell
     goal_a: FloatArray  # the goal: the corridor's cross-section from goal_a to goal_b
     goal_b: FloatArray
+    goal_heading: float  # the course's heading there
     free: NDArray[np.bool_]  # cells the search may use
+    inside: NDArray[np.bool_]  # cells inside the corridor by its clearance plus the slack
 
 
 def _decimate(track: FloatArray, spacing_m: float) -> FloatArray:

@@ -135,8 +135,9 @@ def test_a_kept_path_slowed_by_a_rock_beside_it_gives_way_to_a_faster_one() -> N
     assert again.mode is PlanMode.KEEP and again.path.path_id == result.path.path_id
 
 
-def test_a_zigzag_of_gaps_is_searched_through_slowly() -> None:
-    p = planner()
+@pytest.mark.parametrize("method", ["hybrid", "lattice"])
+def test_a_zigzag_of_gaps_is_searched_through_slowly(method: str) -> None:
+    p = planner(search_method=method)
     grid = chicane(field())
     result = plan(p, grid, Pose(128.0, 0.0, 0.0, 8.0))  # too fast to stop short of the second wall
     points = path_points(result.path)
@@ -163,7 +164,7 @@ def test_a_gap_narrower_than_the_lattice_is_found_cell_by_cell() -> None:
     (clearance plus slack is 0.94 m each side), at north 0.3: off the stride-3 lattice through
     the vehicle's row (0.1, 0.7, ...). The search retries on every cell and gets through.
     Candidates are held to the centre line here, which passes the gap 0.7 m from a wall cell."""
-    p = planner(max_offsets=1, max_gap_offsets=0)
+    p = planner(max_offsets=1, max_gap_offsets=0, search_method="lattice")
     grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, -0.6, 142.0, 1.2)
     assert CONFIG.search_stride == 3
     result = plan(p, grid, Pose(130.0, 0.0, 0.0, 2.0))
@@ -230,8 +231,9 @@ def _step_along(points: np.ndarray, distance_m: float) -> Pose:
     return Pose(float(points[i, 0]), float(points[i, 1]), heading, max(float(points[i, 2]), 0.5))
 
 
-def test_a_blocked_corridor_stops_short_with_the_nose_clear() -> None:
-    p = planner()
+@pytest.mark.parametrize("method", ["hybrid", "lattice"])
+def test_a_blocked_corridor_stops_short_with_the_nose_clear(method: str) -> None:
+    p = planner(search_method=method)
     grid = field().box(150.0, -15.0, 151.0, 15.0)
     result = plan(p, grid, Pose(110.0, 0.0, 0.0, 9.0))
     points = path_points(result.path)
