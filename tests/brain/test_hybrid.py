@@ -15,8 +15,9 @@ from brain.grid import GridWindow
 from brain.planning import PlannerConfig
 from brain.planning.bounds import LocalCorridor
 from brain.planning.checks import PathGate
+from brain.planning.dubins import dubins_points
 from brain.planning.hazards import HazardField
-from brain.planning.hybrid import HybridResult, Terrain, dubins_points, hybrid_search
+from brain.planning.hybrid import HybridResult, Terrain, hybrid_search
 from tests.brain.planning.scenes import Map, course_through, densified, polyline_distance, straight_course
 
 CONFIG = PlannerConfig()
