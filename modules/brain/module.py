@@ -19,10 +19,21 @@ import numpy as np
 from brain.course_config import DEFAULT_COURSE, load_course
 from brain.fusion.fusion import HazardFusion
 from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
-from brain.planning.planner import Planner, PlanResult
+from brain.planning.planner import PlanMode, Planner, PlanResult
+from brain.stall import StallWatch, Standing
 from protocol import channels
 from protocol.codec import Envelope
-from protocol.messages import GroundSweep, LaneBorders, ObstacleList, Sensor, Severity, SurfaceProfile, VehicleState
+from protocol.messages import (
+    GroundSweep,
+    LaneBorders,
+    ObstacleList,
+    Sensor,
+    Severity,
+    StopCommand,
+    StopMode,
+    SurfaceProfile,
+    VehicleState,
+)
 from rascal.config import setting
 from rascal.module import Module, Runtime
 
@@ -37,6 +48,7 @@ SENSOR_NAMES = {
 OBSTACLE_SENSORS = (*HORIZONTAL_LIDARS, STEREO)  # whose age a path's t_input_ns reports
 CYCLES_KEPT = 3000  # planning cycles the heartbeat's p99 spans: 5 min at 10 Hz
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
+FINISH_M = 5.0  # standing this close to the course's end is the finish (the referee's distance)
 MODE_SEVERITY = {
     DriveMode.NORMAL: Severity.INFO,
     DriveMode.LIDAR_DEGRADED: Severity.WARNING,
@@ -61,6 +73,8 @@ class BrainConfig:
     lidar_max_age_s: float = setting(0.2, "a lidar silent this long is dead")
     stereo_max_age_s: float = setting(0.5, "the ESVS silent this long is dead")
     navigation_max_age_s: float = setting(0.2, "vehicle state this old is lost")
+    blocked_after_s: float = setting(3.0, "standing this long with nothing reachable ahead: corridor_blocked")
+    stall_after_s: float = setting(5.0, "standing this long with a way ahead: stalled, plan afresh (and again)")
 
 
 class Brain(Module):
@@ -91,11 +105,17 @@ class Brain(Module):
             raise ValueError("brain: sensors must include an obstacle sensor (a horizontal lidar or esvs)")
         cv2.setNumThreads(1)  # the fusion and planning budgets are shares of one core
         course = load_course(config.course, config.origin)
+        bus = self.bus
         self.planner = Planner.for_course(course)
+        finish_m = course.interpolate().length_m - FINISH_M
+        self.stall = StallWatch(finish_m, config.blocked_after_s, config.stall_after_s)
+        # Only to tell an operator's hold from a stall. The operator's orders, not control's 50 Hz
+        # commands: those are signed, and verifying each would cost more than the stall watch.
+        self.held_by_operator = False
+        bus.subscribe(channels.STOP, self.on_stop_order)
         self.fusion = HazardFusion()
         params = HealthParams(config.lidar_max_age_s, config.stereo_max_age_s, config.navigation_max_age_s)
         self.health = SensorHealth(params, expected=tuple(config.sensors))
-        bus = self.bus
         bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
         bus.subscribe(channels.OBSTACLES_LIDAR, self.on_obstacles)
         bus.subscribe(channels.OBSTACLES_ESVS, self.on_obstacles)
@@ -119,6 +139,9 @@ class Brain(Module):
         self.fusion.add_obstacles(envelope.t_meas_ns, message)
         if message.sensor == Sensor.ESVS and self.config.plan_on_stereo:
             self._plan_soon()
+
+    def on_stop_order(self, order: StopCommand, _envelope: Envelope) -> None:
+        self.held_by_operator = order.mode != StopMode.RUN
 
     def _plan_soon(self) -> None:
         """Plan now: the ESVS's report is the obstacle input that waits longest (exposure,
@@ -177,12 +200,21 @@ class Brain(Module):
             if self.refused == 1 or self.refused % 100 == 0:
                 self.report(Severity.ERROR, "plan_refused", f"{exc} ({self.refused} cycles so far)")
             return
+        self.watch_standing(pose.speed_mps, self.last)
         oldest = self.health.oldest_live_ns(OBSTACLE_SENSORS, self.now_ns())
         path = self.last.path._replace(t_input_ns=oldest or 0)
         self.bus.publish(channels.PATH, path, t_meas_ns=self.state_t_ns)
         self.published += 1
         self.cycle_ms = (time.perf_counter() - started) * 1e3
         self.cycles_ms.append(self.cycle_ms)
+
+    def watch_standing(self, speed_mps: float, plan: PlanResult) -> None:
+        """Report a blocked corridor or a stall; on a stall, plan afresh from where it stands."""
+        way_ahead = plan.mode is not PlanMode.STOP
+        for event in self.stall.update(self.now_ns(), speed_mps, plan.station_m, way_ahead, self.held_by_operator):
+            self.report(event.severity, event.code, event.text)
+            if event.recover:
+                self.planner.reset()
 
     def snapshot(self) -> None:
         if self.fusion.window is not None:
@@ -195,8 +227,9 @@ class Brain(Module):
         plan = self.last
         speed = plan.path.points[0].speed_mps if plan.path.points else 0.0
         stats = self.fusion.stats
+        standing = "" if self.stall.state is Standing.MOVING else f" [{self.stall.state.value}]"
         return (
-            f"{mode}; {plan.mode.value} path {plan.path.path_id} at s={plan.station_m:.0f} m, "
+            f"{mode}{standing}; {plan.mode.value} path {plan.path.path_id} at s={plan.station_m:.0f} m, "
             f"{speed:.1f} m/s{' SLOW' if plan.slow_mode else ''}; cycle {self.cycle_ms:.1f} ms "
             f"(p99 {np.percentile(self.cycles_ms, 99):.1f}); "
             f"fused {stats.messages} msgs, refused no-pose {stats.no_pose}"

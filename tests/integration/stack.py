@@ -155,6 +155,7 @@ class Heard:
     nav_quality: list[tuple[int, int]] = field(default_factory=list)  # (t_meas_ns, NavQuality)
     delivered: Counter[tuple[int, str]] = field(default_factory=Counter)  # (source id, channel)
     summary: dict[str, Any] = field(default_factory=dict)
+    run: subprocess.Popen[bytes] | None = None  # `rascal run`: a test may end it early (SIGTERM)
 
     def subscribe(self) -> None:
         def on(channel: str, handler: Callable[[Any, Envelope], None]) -> None:
@@ -244,7 +245,7 @@ def drive(
     ]
     with log_path.open("wb") as log:
         supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    heard = Heard(Listener(bus_url, key_file, source_id=LISTENER_SOURCE_ID), log_path)
+    heard = Heard(Listener(bus_url, key_file, source_id=LISTENER_SOURCE_ID), log_path, run=supervisor)
     heard.subscribe()
     try:
         yield heard

@@ -1,0 +1,90 @@
+"""Standing still before the finish: noticed, named, and acted on.
+
+A vehicle that stops short of the finish is either blocked (the planner finds nothing reachable
+ahead: a wall across the corridor) or stalled (the planner has a way, yet the vehicle stands: a
+path it cannot start along, a search that keeps ending at its own nose). Neither may go unsaid:
+a blocked corridor is reported within ``blocked_after_s`` of stopping, and a stall after
+``stall_after_s`` starts a recovery (the planner forgets its path and plans afresh from the
+standing pose), repeated every ``stall_after_s`` while it lasts. Standing on the operator's
+order, or at the finish, is neither.
+
+Sans-IO: feed ``update`` once a planning cycle; it returns the events to report.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+from protocol.messages import Severity
+
+STANDING_MPS = 0.1  # the issue's stall: below 0.1 m/s
+MOVING_M = 1.0  # driven this far from where it stood: moving again
+
+
+class Standing(enum.Enum):
+    MOVING = "moving"
+    STANDING = "standing"  # not yet long enough to say why
+    BLOCKED = "blocked"
+    STALLED = "stalled"
+
+
+@dataclass(frozen=True)
+class StallEvent:
+    severity: Severity
+    code: str
+    text: str
+    recover: bool = False  # the brain should make the planner start afresh
+
+
+class StallWatch:
+    """Watches speed and station each cycle against what the planner says."""
+
+    def __init__(self, finish_m: float, blocked_after_s: float = 3.0, stall_after_s: float = 5.0) -> None:
+        if not (blocked_after_s > 0 and stall_after_s > 0):
+            raise ValueError("stall watch: the delays must be positive")
+        self.finish_m = finish_m
+        self.blocked_after_s = blocked_after_s
+        self.stall_after_s = stall_after_s
+        self.state = Standing.MOVING
+        self.recoveries = 0
+        self._since_ns = 0  # when it stood still
+        self._station_m = 0.0  # where it stood
+        self._last_recovery_ns = 0
+
+    def update(
+        self, now_ns: int, speed_mps: float, station_m: float, way_ahead: bool, held_by_operator: bool
+    ) -> list[StallEvent]:
+        """One cycle: the vehicle's speed and station, whether the planner has a path that goes
+        anywhere (``way_ahead``), and whether the operator holds it."""
+        standing = speed_mps < STANDING_MPS and not held_by_operator and station_m < self.finish_m
+        if self.state is Standing.MOVING:
+            if standing:
+                self.state, self._since_ns, self._station_m = Standing.STANDING, now_ns, station_m
+            return []
+        if not standing or abs(station_m - self._station_m) > MOVING_M:
+            return self._moving_again(now_ns, station_m)
+        stood_s = (now_ns - self._since_ns) / 1e9
+        if not way_ahead and stood_s >= self.blocked_after_s and self.state is not Standing.BLOCKED:
+            self.state = Standing.BLOCKED
+            text = f"corridor blocked at s={station_m:.0f} m: nothing reachable ahead; standing for {stood_s:.0f} s"
+            return [StallEvent(Severity.CRITICAL, "corridor_blocked", text)]
+        if way_ahead and stood_s >= self.stall_after_s:
+            if (now_ns - self._last_recovery_ns) / 1e9 < self.stall_after_s:
+                return []
+            self.state, self._last_recovery_ns = Standing.STALLED, now_ns
+            self.recoveries += 1
+            text = (
+                f"standing for {stood_s:.0f} s at s={station_m:.0f} m with a way ahead: "
+                f"recovery {self.recoveries}, planning afresh from here"
+            )
+            return [StallEvent(Severity.WARNING, "stalled", text, recover=True)]
+        return []
+
+    def _moving_again(self, now_ns: int, station_m: float) -> list[StallEvent]:
+        was, stood_s = self.state, (now_ns - self._since_ns) / 1e9
+        self.state = Standing.MOVING
+        if was in (Standing.BLOCKED, Standing.STALLED):
+            text = f"moving again at s={station_m:.0f} m after standing {stood_s:.0f} s ({was.value})"
+            return [StallEvent(Severity.INFO, "moving_again", text)]
+        return []
