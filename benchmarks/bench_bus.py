@@ -3,7 +3,9 @@
 Everything is measured side by side in one run, between two processes, on loopback only:
 
 1. one-way latency (p50, p99) of a ~300 B ObstacleList in two regimes, rounds interleaved;
-2. sustained throughput at 20k, 50k and 80k msg/s: achieved send rate, received, loss.
+2. sustained throughput at 20k, 50k and 80k msg/s: achieved send rate, received, loss;
+3. what command authority costs (benchmarks/bench_authority.py, in-process): Ed25519 signing and
+   verifying per command, and the CPU they add at control's 50 Hz.
 
 Latency regimes: "cold" paces 1,000 msg/s and the subscriber sleeps in poll/select between
 messages, so every message wakes a sleeping process with cold caches. "hot" is the setting of
@@ -43,6 +45,8 @@ from types import FrameType, ModuleType
 
 from rich.console import Console
 
+from benchmarks.bench_authority import authority_table
+from benchmarks.bench_authority import measure as measure_authority
 from benchmarks.bus_peers import Contender, Lcm, Rascal, RawUdp, generate_lcm_types
 from benchmarks.harness import BenchError, PairResult, run_pair
 from benchmarks.netns import (
@@ -335,6 +339,7 @@ def run_benchmark(where: str, lcm_skip: str | None, notes: list[str]) -> int:
     for regime in REGIMES:
         print_table(console, latency_table(regime, latency[regime]))
     print_table(console, throughput_table(throughput))
+    print_table(console, authority_table(measure_authority()))
     _say(console, "\n".join(f"{verdict}  {text}" for verdict, text in acceptance(latency, throughput)))
     return 0
 

@@ -11,12 +11,15 @@
  *
  * Fragment datagrams (flags bit 0x02) never take this path: locate() refuses them and the Bus
  * sends them to the Python reassembler (protocol/framing.py), which checks each fragment's own
- * tag. Fragments are rare (large messages only), so they need no C twin.
+ * tag. Fragments are rare (large messages only), so they need no C twin. Nor do messages with an
+ * Ed25519 signature (flags bit 0x04, the low-rate command channels): locate() refuses any flag
+ * but SIGNED, and the Receiver leaves every message of a governed route to Python, which checks
+ * command authority (protocol/authority.py).
  *
  * Layout (little-endian, SPEC.md is normative):
  *   magic "RB" | version u8 | flags u8 | type_id u16 | source_id u16 | key_id u16 |
  *   channel_len u8 | reserved u8 | seq u64 | t_meas_ns i64 | t_pub_ns i64 |
- *   channel | msgpack body | tag (16 B, if signed)
+ *   channel | msgpack body | [Ed25519 signature, 64 B: never here] | tag (16 B, if signed)
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -26,7 +29,7 @@
 #include <string.h>
 
 /* Bumped whenever a signature or a plan's meaning changes: Python ignores a stale build. */
-#define FASTPATH_ABI 4
+#define FASTPATH_ABI 5
 
 #define PREFIX_BYTES 12
 #define HEADER_BYTES 36
@@ -984,13 +987,15 @@ static PyTypeObject ReplayGuardType = {
 
 /* -- the whole receive path ----------------------------------------------------------------------
  * Receiver(macs_by_id, max_bytes, routes, replay, envelope_cls): one per Bus, holding what
- * the bus's receive path consults. routes maps channel -> route with attributes type_id, plan and
- * replay_exempt (rascal.bus._Route); replay is a ReplayGuard of this module.
+ * the bus's receive path consults. routes maps channel -> route with attributes type_id, plan,
+ * replay_exempt and governed (rascal.bus._Route); replay is a ReplayGuard of this module;
+ * envelope_cls has 10 fields, the last (the signature) None for every message accepted here.
  *
  * accept(data, recv_ns, recv_local_ns, check_freshness)
  *   -> (route, msg, envelope, lost)  a message for a subscribed channel, checked, numbered, decoded
  *   -> False                         authentic, but for a channel nobody here subscribed to
- *   -> None                          anything else: Python's path decides (and words the error)
+ *   -> None                          anything else, and everything on a governed route (its
+ *                                    signature is checked in Python): Python's path decides
  * Raises ProtocolError only for what the replay guard refuses, and asks the guard last, so that
  * a message left to Python has left no trace in the guard that Python's path would trip over. */
 
@@ -1000,7 +1005,7 @@ typedef struct {
     Py_ssize_t max_bytes;
 } ReceiverObject;
 
-static PyObject *name_type_id, *name_plan, *name_replay_exempt;
+static PyObject *name_type_id, *name_plan, *name_replay_exempt, *name_governed;
 
 static int receiver_init(ReceiverObject *self, PyObject *args, PyObject *kwargs) {
     static char *keywords[] = {"macs_by_id", "max_bytes", "routes", "replay", "envelope_cls", NULL};
@@ -1081,6 +1086,11 @@ static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py
         goto done;
     }
     Py_INCREF(route);
+    long governed = route_long(route, name_governed);
+    if (governed != 0) { /* -1: an error, or governed: Python checks the signature */
+        result = governed == -1 && PyErr_Occurred() ? NULL : Py_NewRef(Py_None);
+        goto done;
+    }
     long type_id = get_u16(m.p + 4), source_id = get_u16(m.p + 6);
     long expected = route_long(route, name_type_id);
     if (expected == -1 && PyErr_Occurred()) goto done;
@@ -1103,7 +1113,7 @@ static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py
                         &lost) < 0)
             goto done;
     }
-    PyObject *fields[9] = {
+    PyObject *fields[10] = {
         Py_NewRef(channel),
         PyLong_FromLong(source_id),
         PyLong_FromUnsignedLongLong(seq),
@@ -1113,8 +1123,9 @@ static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py
         PyLong_FromLong(type_id),
         PyLong_FromSsize_t(m.size),
         Py_NewRef(args[2]),
+        Py_NewRef(Py_None),
     };
-    PyObject *envelope = new_record((PyTypeObject *)self->envelope_cls, fields, 9);
+    PyObject *envelope = new_record((PyTypeObject *)self->envelope_cls, fields, 10);
     PyObject *lost_count = envelope == NULL ? NULL : PyLong_FromLongLong(lost);
     if (lost_count != NULL) result = PyTuple_Pack(4, route, msg, envelope, lost_count);
     Py_XDECREF(envelope);
@@ -1161,7 +1172,8 @@ PyMODINIT_FUNC PyInit__fastpath(void) {
     name_type_id = PyUnicode_InternFromString("type_id");
     name_plan = PyUnicode_InternFromString("plan");
     name_replay_exempt = PyUnicode_InternFromString("replay_exempt");
-    if (!name_type_id || !name_plan || !name_replay_exempt) return NULL;
+    name_governed = PyUnicode_InternFromString("governed");
+    if (!name_type_id || !name_plan || !name_replay_exempt || !name_governed) return NULL;
     PyObject *errors = PyImport_ImportModule("protocol.errors");
     if (errors == NULL) return NULL;
     ProtocolError = PyObject_GetAttrString(errors, "ProtocolError");

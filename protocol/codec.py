@@ -4,7 +4,11 @@ Layout (little-endian; SPEC.md is normative)::
 
     magic "RB" | version u8 | flags u8 | type_id u16 | source_id u16 | key_id u16 |
     channel_len u8 | reserved u8 | seq u64 | t_meas_ns i64 | t_pub_ns i64 |
-    channel (channel_len bytes, ASCII) | body (msgpack array) | tag (16 B, if SIGNED)
+    channel (channel_len bytes, ASCII) | body (msgpack array) |
+    signature (64 B Ed25519, if SIGNATURE) | tag (16 B, if SIGNED)
+
+The signature covers header, channel and body; the tag covers everything before it, the
+signature included. SIGNATURE comes only with SIGNED.
 """
 
 from __future__ import annotations
@@ -19,12 +23,15 @@ from protocol.auth import TAG_BYTES, Keyring
 from protocol.errors import ProtocolError, Reason
 from protocol.fastpath import native
 from protocol.schema import info_for_class, info_for_id
+from protocol.signing import SIGNATURE_BYTES, Signed, Signer
 
 _new = tuple.__new__
 MAGIC = b"RB"
 VERSION = 1
 FLAG_SIGNED = 0x01
 FLAG_FRAGMENT = 0x02
+FLAG_SIGNATURE = 0x04
+MESSAGE_FLAGS = FLAG_SIGNED | FLAG_SIGNATURE
 HEADER = struct.Struct("<2sBBHHHBBQqq")
 HEADER_BYTES = HEADER.size  # 36
 HEADER_PREFIX = struct.Struct("<2sBBHHHBB")  # magic .. reserved
@@ -46,6 +53,8 @@ class Envelope(NamedTuple):
     type_id: int
     size: int
     recv_local_ns: int
+    # The message's Ed25519 signature and what it covers; None when it carries none.
+    signed: Signed | None = None
 
 
 class Opened(NamedTuple):
@@ -86,19 +95,36 @@ class Codec:
         if keyring is not None and native is not None:
             self.verifying_macs = {key_id: native.Mac(key) for key_id, key in keyring.keys.items()}
             self._signing_mac = self.verifying_macs[keyring.active]
-        # The first 12 header bytes are fixed per (type, channel, source): packed once.
-        self._prefixes: dict[tuple[type, bytes, int], bytes] = {}
+        # The first 12 header bytes are fixed per (type, channel, source, flags): packed once.
+        self._prefixes: dict[tuple[type, bytes, int, int], bytes] = {}
 
-    def encode(self, channel: bytes, msg: Any, source_id: int, seq: int, t_meas_ns: int, t_pub_ns: int) -> bytes:
-        """Serialise ``msg`` (a registered message) into one message; may exceed a datagram."""
-        key = (type(msg), channel, source_id)
+    def encode(
+        self,
+        channel: bytes,
+        msg: Any,
+        source_id: int,
+        seq: int,
+        t_meas_ns: int,
+        t_pub_ns: int,
+        signer: Signer | None = None,
+    ) -> bytes:
+        """Serialise ``msg`` (a registered message) into one message; may exceed a datagram.
+        With ``signer`` it carries that source's Ed25519 signature (needs a keyring: SIGNED)."""
+        if signer is not None and self.keyring is None:
+            raise ValueError("a signature needs the signed mode: the tag covers it")
+        flags = self._flags | FLAG_SIGNATURE if signer is not None else self._flags
+        key = (type(msg), channel, source_id, flags)
         prefix = self._prefixes.get(key)
         if prefix is None:
             type_id = info_for_class(type(msg)).type_id
             prefix = self._prefixes[key] = HEADER_PREFIX.pack(
-                MAGIC, VERSION, self._flags, type_id, source_id, self._key_id, len(channel), 0
+                MAGIC, VERSION, flags, type_id, source_id, self._key_id, len(channel), 0
             )
-        if native is not None:
+        if signer is not None:
+            data = b"".join((prefix, HEADER_TIMES.pack(seq, t_meas_ns, t_pub_ns), channel, self._packer.pack(msg)))
+            data += signer.sign(data)
+            data += self.keyring.sign(data)  # type: ignore[union-attr]
+        elif native is not None:
             data = native.seal(prefix, seq, t_meas_ns, t_pub_ns, channel, self._packer.pack(msg), self._signing_mac)
         else:
             data = b"".join((prefix, HEADER_TIMES.pack(seq, t_meas_ns, t_pub_ns), channel, self._packer.pack(msg)))
@@ -127,18 +153,21 @@ class Codec:
             raise ProtocolError(Reason.BAD_MAGIC)
         if version != VERSION:
             raise ProtocolError(Reason.BAD_VERSION, f"version {version}", source_id)
-        if flags & ~FLAG_SIGNED:
+        # SIGNATURE needs SIGNED: the tag, checked first, covers the signature, so no one
+        # without the MAC key can make a receiver spend a signature check.
+        if flags & ~MESSAGE_FLAGS or (flags & FLAG_SIGNATURE and not flags & FLAG_SIGNED):
             raise ProtocolError(Reason.BAD_HEADER, f"flags {flags:#x}", source_id)
         body_start = HEADER_BYTES + channel_len
         view = memoryview(data)
         if flags & FLAG_SIGNED:
-            body_end = size - TAG_BYTES
+            tag_start = size - TAG_BYTES
+            body_end = tag_start - SIGNATURE_BYTES if flags & FLAG_SIGNATURE else tag_start
             if body_end < body_start:
-                raise ProtocolError(Reason.TRUNCATED, "no room for the tag", source_id)
+                raise ProtocolError(Reason.TRUNCATED, "no room for the tag (and signature)", source_id)
             if self.keyring is not None:
                 if key_id not in self.keyring.keys:
                     raise ProtocolError(Reason.UNKNOWN_KEY, f"key id {key_id}", source_id)
-                if not self.keyring.verify(key_id, view[:body_end], view[body_end:]):
+                if not self.keyring.verify(key_id, view[:tag_start], view[tag_start:]):
                     raise ProtocolError(Reason.BAD_MAC, "", source_id)
         else:
             if self.keyring is not None:
@@ -152,6 +181,26 @@ class Codec:
             raise ProtocolError(Reason.BAD_HEADER, "channel is not ASCII", source_id) from None
         # tuple.__new__ skips the NamedTuple's Python-level __new__: this runs for every datagram.
         return _new(Opened, (type_id, source_id, seq, t_meas_ns, t_pub_ns, channel, view[body_start:body_end]))
+
+
+def body_span(data: bytes | memoryview) -> tuple[int, int]:
+    """Where the body of a well-formed message (one that passed :meth:`Codec.open`, e.g. from a
+    recording) starts and ends: after header and channel, before signature and tag."""
+    flags = data[3]
+    end = len(data) - TAG_BYTES if flags & FLAG_SIGNED else len(data)
+    if flags & FLAG_SIGNATURE:
+        end -= SIGNATURE_BYTES
+    return HEADER_BYTES + data[10], end  # byte 10: the channel name's length
+
+
+def signed_part(data: bytes) -> Signed | None:
+    """The signature of a message that passed :meth:`Codec.open`, with the bytes it covers;
+    None when it carries none."""
+    if not data[3] & FLAG_SIGNATURE:
+        return None
+    end = len(data) - TAG_BYTES - SIGNATURE_BYTES
+    view = memoryview(data)
+    return Signed(view[:end], view[end : end + SIGNATURE_BYTES])
 
 
 def unpack_body(body: bytes | memoryview, source_id: int | None = None) -> Any:

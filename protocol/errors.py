@@ -21,6 +21,7 @@ class Reason(enum.Enum):
     UNSIGNED = "unsigned"
     UNKNOWN_KEY = "unknown_key"
     BAD_MAC = "bad_mac"
+    UNAUTHORIZED = "unauthorized"
     REPLAY = "replay"
     STALE = "stale"
     FUTURE = "future"

@@ -14,7 +14,7 @@ import os
 from types import ModuleType
 
 # Must equal FASTPATH_ABI in _fastpath.c: a build from older sources is not used.
-ABI = 4
+ABI = 5
 PURE_PYTHON_ENV = "RASCAL_PURE_PYTHON"
 
 

@@ -1,9 +1,17 @@
-"""Publish/subscribe over a transport: typed messages, signing, replay protection, statistics.
+"""Publish/subscribe over a transport: typed messages, signing, replay protection, command
+authority, statistics.
 
 A Bus is what a module holds. It owns the codec, the reassembler and the replay guard (all
 sans-IO, in ``protocol``) and drives the transport. Everything a peer can get wrong raises
 ProtocolError inside :meth:`Bus.poll`, which counts it per source and reason and drops the
 datagram; the module never sees it.
+
+Command authority (protocol/authority.py): a bus whose keyring holds this source's signing key
+signs what it publishes on a governed channel; a bus whose keyring holds an authority table (a
+module key file) accepts a governed message only with a valid signature by a source with
+authority on its channel. Nodes with the master file (operator tools, tests) sign as whichever
+source they are and, trusted, enforce nothing unless given the deployment's authority
+(:meth:`Bus.enforce`: the supervisor does, an operator tool told the deployment does).
 """
 
 from __future__ import annotations
@@ -16,7 +24,17 @@ from typing import Any, TypeVar
 
 from protocol import channels
 from protocol.auth import Keyring, default_keyring
-from protocol.codec import FLAG_FRAGMENT, Codec, Envelope, Opened, check_channel, unpack_body
+from protocol.authority import GOVERNED, VERIFIED_ON_RECEIPT, Authority, needs_signature
+from protocol.codec import (
+    FLAG_FRAGMENT,
+    FLAG_SIGNATURE,
+    Codec,
+    Envelope,
+    Opened,
+    check_channel,
+    signed_part,
+    unpack_body,
+)
 from protocol.errors import ProtocolError, Reason
 from protocol.fastpath import native
 from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, Reassembler, ReassemblyLimits, fragment, new_message_id
@@ -74,12 +92,13 @@ class ChannelStats:
 class _Route:
     """Everything the receive path needs for one subscribed channel, found with one lookup."""
 
-    __slots__ = ("channel", "decode", "handlers", "latest", "plan", "replay_exempt", "type_id", "wake")
+    __slots__ = ("channel", "decode", "governed", "handlers", "latest", "plan", "replay_exempt", "type_id", "wake")
 
-    def __init__(self, channel: str, type_id: int) -> None:
+    def __init__(self, channel: str, type_id: int, governed: bool) -> None:
         self.channel = channel
         self.type_id = type_id
         self.replay_exempt = channel in REPLAY_EXEMPT
+        self.governed = governed  # its messages' signatures are checked on receipt (in Python)
         info = info_for_id(type_id)
         self.decode = info.decode
         self.plan = info.plan
@@ -114,6 +133,12 @@ class Bus:
         self.max_datagram_bytes = max_datagram_bytes
         reassembly_limits = reassembly_limits or ReassemblyLimits()
         self.codec = Codec(keyring, reassembly_limits.max_message_bytes)
+        # None: this node cannot sign as its source (a legacy key file, or another source's).
+        self.signer = keyring.signer(source_id) if keyring is not None else None
+        self._signing = keyring is not None and not keyring.legacy
+        # None: this node enforces no authority (a master or legacy key file, or unsigned),
+        # unless told to (enforce).
+        self.authority = keyring.authority if keyring is not None else None
         self.replay = ReplayGuard(replay_limits)
         self.reassembler = Reassembler(reassembly_limits, keyring)
         self.stats: dict[str, ChannelStats] = {}
@@ -167,9 +192,17 @@ class Bus:
             channel_bytes = self._declare(channel, type(msg))
         seq = self._next_seq.get(channel, self._seq_base)
         self._next_seq[channel] = seq + 1
+        signer = None
+        if self._signing and channel in GOVERNED and needs_signature(channel, msg):
+            signer = self.signer
+            if signer is None:
+                raise PermissionError(
+                    f"{channel}: this key file holds no signing key for source {self.source_id}, "
+                    "so every node with an authority table would reject the message"
+                )
         t_pub_ns = self.clock.now_ns()
         data = self.codec.encode(
-            channel_bytes, msg, self.source_id, seq, t_pub_ns if t_meas_ns is None else t_meas_ns, t_pub_ns
+            channel_bytes, msg, self.source_id, seq, t_pub_ns if t_meas_ns is None else t_meas_ns, t_pub_ns, signer
         )
         return seq, data
 
@@ -217,7 +250,8 @@ class Bus:
         new = sub is None
         if sub is None:
             check_channel(channel)
-            sub = self._subs[channel] = _Route(channel, type_id)
+            governed = self.authority is not None and channel in VERIFIED_ON_RECEIPT
+            sub = self._subs[channel] = _Route(channel, type_id, governed)
         elif sub.type_id != type_id:
             raise TypeError(f"channel {channel} is already subscribed with another type")
         if new or (wake and not sub.wake):
@@ -294,6 +328,10 @@ class Bus:
         route = self._subs.get(channel)
         if route is None and not self._raw_handlers:
             return None  # shares a port with a channel we want; not ours
+        signed = signed_part(data) if data[3] & FLAG_SIGNATURE else None
+        if self.authority is not None and channel in VERIFIED_ON_RECEIPT:
+            # Before the replay window: a forgery must leave no trace in its victim's stream.
+            self.authority.check(channel, source_id, signed)
         if channel in REPLAY_EXEMPT:
             lost = 0
         else:
@@ -313,9 +351,29 @@ class Bus:
         for raw_handler in self._raw_handlers:
             raw_handler(opened, data, recv_ns)
         envelope = _new(
-            Envelope, (channel, source_id, seq, t_meas_ns, t_pub_ns, recv_ns, type_id, len(data), recv_local_ns)
+            Envelope, (channel, source_id, seq, t_meas_ns, t_pub_ns, recv_ns, type_id, len(data), recv_local_ns, signed)
         )
         return route, msg, envelope, lost
+
+    def enforce(self, authority: Authority) -> None:
+        """Enforce ``authority`` from now on: for a node with the master file that knows its
+        deployment (the supervisor; an operator tool told the deployment)."""
+        self.authority = authority
+        for route in self._subs.values():
+            route.governed = route.channel in VERIFIED_ON_RECEIPT
+
+    def authorized(self, envelope: Envelope) -> bool:
+        """Whether a message on a channel whose handler verifies it (protocol.authority.
+        VERIFIED_BY_HANDLER: time-sync replies) is by a source with authority: asked by the
+        handler for the messages it means to use. A refusal is counted as a reject."""
+        if self.authority is None:
+            return True
+        try:
+            self.authority.check(envelope.channel, envelope.source_id, envelope.signed)
+        except ProtocolError as error:
+            self._count_reject(error)
+            return False
+        return True
 
     def _count_reject(self, error: ProtocolError) -> None:
         key = (error.source_id, error.reason.value)

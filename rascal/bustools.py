@@ -22,6 +22,7 @@ from rich.live import Live
 from rich.table import Table
 
 from protocol import channels
+from protocol.auth import Keyring
 from protocol.codec import Opened, decode_body
 from protocol.errors import ProtocolError
 from protocol.messages import ModuleStatus
@@ -31,13 +32,18 @@ from rascal.clock import SharedClock
 from rascal.timeclient import TimeClient
 from rascal.timesync import SyncState
 
-TOOL_SOURCE_IDS = (0xF000, 0xFFFE)
+# Below protocol.authority.OPERATOR_SOURCE_ID (0xFFF0): a tool never takes the operator's id.
+TOOL_SOURCE_IDS = (0xF000, 0xFFEF)
 
 
-def tool_bus(url: str | None, *, signing: bool = True) -> tuple[Bus, TimeClient]:
-    """A short-lived node for a tool: random source id in the tools' range, synced to the master."""
+def tool_bus(
+    url: str | None, *, signing: bool = True, keyring: Keyring | None = None, source_id: int | None = None
+) -> tuple[Bus, TimeClient]:
+    """A short-lived node for a tool, synced to the master: ``source_id``, else a random one in
+    the tools' range; ``keyring``, else the deployment's."""
     clock = SharedClock()
-    bus = Bus.open(url, source_id=random.randint(*TOOL_SOURCE_IDS), clock=clock, signing=signing)
+    source_id = source_id or random.randint(*TOOL_SOURCE_IDS)
+    bus = Bus.open(url, source_id=source_id, clock=clock, keyring=keyring, signing=signing)
     return bus, TimeClient(bus, clock)
 
 

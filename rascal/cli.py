@@ -65,7 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.set_defaults(handler=_demo)
 
-    keygen = commands.add_parser("keygen", help="write a new deployment key file (mode 600)")
+    keygen = commands.add_parser(
+        "keygen", help="write a new deployment key file (mode 600): MAC key and signing master"
+    )
     keygen.add_argument("path", type=Path, nargs="?", default=DEFAULT_KEY_FILE)
     keygen.add_argument("--force", action="store_true", help="replace an existing file")
     keygen.set_defaults(handler=_keygen)
@@ -105,6 +107,11 @@ def build_parser() -> argparse.ArgumentParser:
         order = commands.add_parser(name, help=f"{help_text}; repeated until control obeys")
         order.add_argument("--reason", default=f"operator {name}", help="recorded with the order")
         order.add_argument("--timeout", type=float, default=5.0, help="seconds to keep ordering before giving up")
+        order.add_argument(
+            "--deployment",
+            type=Path,
+            help="the running deployment: trust time-sync replies only from its time service (command authority)",
+        )
         order.set_defaults(handler=_operator_order)
 
     time_ = commands.add_parser("time", help="shared time").add_subparsers(dest="tool", required=True)
@@ -174,7 +181,14 @@ def _operator_order(args: argparse.Namespace) -> int:
     from rascal.operator_stop import describe, give_order
 
     mode = {"stop": StopMode.ESTOP, "pause": StopMode.PAUSE, "resume": StopMode.RUN}[args.command]
-    result = give_order(args.bus, mode, args.reason, args.timeout)
+    from rascal.deployment import DeploymentError, load_deployment
+
+    try:
+        authority = load_deployment(args.deployment).authority if args.deployment else None
+    except DeploymentError as exc:
+        print(f"rascal {args.command}: {exc}", file=sys.stderr)
+        return 2
+    result = give_order(args.bus, mode, args.reason, args.timeout, authority=authority)
     print(describe(mode, result), file=sys.stdout if result.confirmed else sys.stderr)
     return 0 if result.confirmed else 1
 

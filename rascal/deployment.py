@@ -28,10 +28,16 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     modules = ["brain"]                       # receivers (default: every module); or to_hosts = [...]
     from_hosts = ["sensorbox"]                # senders: from_hosts / from_modules (default: any)
 
+    [authority]                               # who may publish on the governed channels (optional)
+    ACTUATOR_COMMAND = ["control"]            # module labels, "operator" (rascal stop|pause|resume),
+    STOP = ["operator", "supervisor"]         #   "supervisor" (every host's), or source ids 1..65535
+
 A module whose configuration has ``scenario``, ``course`` or ``origin`` settings gets the
 deployment's unless its ``set`` table overrides them, so every process shares one frame. Errors
 name the file and the key. Each module's fault rules reach it as ``$RASCAL_FAULTS``, with the
 rule's seed mixed with the module's source id (repeatable, yet modules lose different datagrams).
+A governed channel that ``[authority]`` does not name gets its default (``DEFAULT_AUTHORITY``):
+every module of the package that publishes it, or the operator and the supervisors.
 """
 
 from __future__ import annotations
@@ -44,6 +50,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl, urlencode, urlsplit
 
+from protocol import channels
+from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
 from rascal.config import ConfigError, build_config
 from rascal.launch import module_class
@@ -55,6 +63,18 @@ FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
 # Each host's own processes (supervisor, recorder) get source ids offset by this per host, in
 # declaration order: two senders sharing a source id would break each other's replay windows.
 HOST_SOURCE_ID_STRIDE = 100
+SUPERVISOR_SOURCE_ID = 9  # each host's supervisor: this, offset per host
+OPERATOR = "operator"  # the operator's tools: protocol.authority.OPERATOR_SOURCE_ID
+SUPERVISOR = "supervisor"  # every host's supervisor (it pauses the vehicle when a run ends)
+# Who may publish on each governed channel unless [authority] says: these words, or every module
+# of the package named.
+DEFAULT_AUTHORITY: dict[str, tuple[str, ...]] = {
+    channels.ACTUATOR_COMMAND: ("control",),
+    channels.PATH: ("brain",),
+    channels.STOP: (OPERATOR, SUPERVISOR),
+    channels.CONFIG: (OPERATOR, SUPERVISOR),
+    channels.TIME_SYNC: ("time_service",),
+}
 # What each module may use, in % of one core with its children, before the supervisor warns
 # (over it for CPU_BUDGET_BEATS heartbeats in a row): each measured mean in the default demo with
 # room for the busiest stretches. The measured means sum to about 80 %, the vehicle's own side
@@ -132,6 +152,7 @@ class Deployment:
     origin: str
     hosts: dict[str, str]  # name -> address
     modules: tuple[ModuleSpec, ...]
+    authority: dict[str, tuple[int, ...]]  # governed channel -> source ids that may publish on it
 
     def on_host(self, host: str) -> tuple[ModuleSpec, ...]:
         if host not in self.hosts:
@@ -180,7 +201,7 @@ class _Parser:
         return DeploymentError(f"{self.path}: {key}: {problem}")
 
     def deployment(self, doc: dict[str, Any]) -> Deployment:
-        self.keys(doc, "", {"deployment", "hosts", "modules", "faults"})
+        self.keys(doc, "", {"deployment", "hosts", "modules", "faults", "authority"})
         head = self.table(doc, "deployment")
         self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
         hosts_table = self.table(doc, "hosts", required=False)
@@ -221,6 +242,7 @@ class _Parser:
             shared["origin"],  # type: ignore[arg-type]
             hosts,
             tuple(specs),
+            self.authority(self.table(doc, "authority", required=False), specs, hosts),
         )
 
     def module(
@@ -302,6 +324,48 @@ class _Parser:
                 seed = rule.seed * 0x10000 + by_label[label].source_id
                 rules[label].append(dataclasses.replace(rule, seed=seed))
         return [dataclasses.replace(spec, faults=tuple(rules[spec.label])) for spec in specs]
+
+    def authority(
+        self, table: dict[str, Any], specs: list[ModuleSpec], hosts: dict[str, str]
+    ) -> dict[str, tuple[int, ...]]:
+        """Each governed channel's publishers as source ids: ``table``'s labels, words and ids, else
+        the channel's default."""
+        unknown = sorted(set(table) - set(GOVERNED_CHANNELS))
+        if unknown:
+            raise self.fail(f"authority.{unknown[0]}", f"not a governed channel; governed: {list(GOVERNED_CHANNELS)}")
+        by_label = {spec.label: spec.source_id for spec in specs}
+        words = {
+            OPERATOR: (OPERATOR_SOURCE_ID,),
+            SUPERVISOR: tuple(SUPERVISOR_SOURCE_ID + HOST_SOURCE_ID_STRIDE * index for index in range(len(hosts))),
+        }
+        resolved: dict[str, tuple[int, ...]] = {}
+        for channel in GOVERNED_CHANNELS:
+            ids: list[int] = []
+            if channel not in table:
+                for name in DEFAULT_AUTHORITY[channel]:
+                    ids += words.get(name, ()) or [spec.source_id for spec in specs if spec.module == name]
+            else:
+                names = table[channel]
+                if not isinstance(names, list):
+                    raise self.fail(f"authority.{channel}", f"expected a list of module labels, got {names!r}")
+                for name in names:
+                    ids += self.publisher(name, channel, by_label, words)
+            resolved[channel] = tuple(sorted(set(ids)))
+        return resolved
+
+    def publisher(
+        self, name: Any, channel: str, by_label: dict[str, int], words: dict[str, tuple[int, ...]]
+    ) -> tuple[int, ...]:
+        if isinstance(name, int) and not isinstance(name, bool) and 0 < name < 0x10000:
+            return (name,)
+        if isinstance(name, str) and name in words:
+            return words[name]
+        if isinstance(name, str) and name in by_label:
+            return (by_label[name],)
+        raise self.fail(
+            f"authority.{channel}",
+            f"{name!r} is no module label {sorted(by_label)}, {OPERATOR!r}, {SUPERVISOR!r} or source id 1..65535",
+        )
 
     def names(self, table: dict[str, Any], where: str, key: str, known: dict[str, Any]) -> list[str]:
         value = table.get(key, [])

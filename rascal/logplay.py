@@ -15,7 +15,9 @@ play **restamps** each message:
   so that each message is exactly as old at publication as it was live
   (``t_pub - t_meas`` unchanged): consumers' max-age checks behave as they did;
 * the message is signed again with the current deployment key (the recording may predate a
-  key change).
+  key change); a recorded command signature is made anew for its source when the key file holds
+  that source's signing key (the master file), else dropped: nodes that enforce command authority
+  then reject the message, as they should a replay no key holder vouches for.
 
 Messages go out at their recorded receive times (``log_time``) scaled by ``1/speed`` from the
 start of play; a player that falls behind sends at once and reports how late it got. Play ends
@@ -36,8 +38,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 from protocol import channels as declared
-from protocol.auth import TAG_BYTES, Keyring
-from protocol.codec import FLAG_SIGNED, HEADER, HEADER_BYTES
+from protocol.auth import Keyring
+from protocol.codec import FLAG_SIGNATURE, FLAG_SIGNED, HEADER, HEADER_BYTES, body_span
 from protocol.replay import RESTART_JUMP
 from rascal.bus import Bus
 from rascal.logread import Datagram
@@ -53,10 +55,15 @@ def restamp(data: bytes, seq: int, t_meas_ns: int, t_pub_ns: int, keyring: Keyri
     (magic, version, flags, type_id, source_id, _key_id, channel_len, _reserved, _seq, _t_meas, _t_pub) = (
         HEADER.unpack_from(data)
     )
-    end = len(data) - TAG_BYTES if flags & FLAG_SIGNED else len(data)
+    _start, end = body_span(data)
+    signer = keyring.signer(source_id) if keyring is not None and flags & FLAG_SIGNATURE else None
     flags, key_id = (FLAG_SIGNED, keyring.active) if keyring is not None else (0, 0)
+    if signer is not None:
+        flags |= FLAG_SIGNATURE
     head = HEADER.pack(magic, version, flags, type_id, source_id, key_id, channel_len, 0, seq, t_meas_ns, t_pub_ns)
     message = head + data[HEADER_BYTES:end]
+    if signer is not None:
+        message += signer.sign(message)
     return message + keyring.sign(message) if keyring is not None else message
 
 

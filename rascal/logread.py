@@ -21,8 +21,7 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from zstandard import ZstdError
 
-from protocol.auth import TAG_BYTES
-from protocol.codec import FLAG_SIGNED, HEADER, HEADER_BYTES, MAGIC, decode_body
+from protocol.codec import HEADER, HEADER_BYTES, MAGIC, body_span, decode_body
 from protocol.errors import ProtocolError
 from protocol.replay import ReplayGuard
 from rascal.record_schema import RAW_ENCODING
@@ -125,9 +124,10 @@ def decode(datagram: Datagram) -> Any:
 
 
 def body_of(data: bytes) -> memoryview:
-    """The body of a whole recorded message: after the header and channel name, before the tag."""
-    end = len(data) - TAG_BYTES if data[3] & FLAG_SIGNED else len(data)
-    return memoryview(data)[HEADER_BYTES + data[10] : end]  # byte 10: the channel name's length
+    """The body of a whole recorded message: after the header and channel name, before the
+    signature and tag."""
+    start, end = body_span(data)
+    return memoryview(data)[start:end]
 
 
 def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:

@@ -5,6 +5,12 @@ from the future while the tool says "published". So the tool first synchronises 
 master, then sends the order every ``REPEAT_S`` until control's own actuator commands show it in
 force (their ``stop_reason`` starts with "estop" or "pause"; after a resume, with neither), and
 says which happened. The order is repeated, not the effect assumed.
+
+Control obeys only a STOP signed by a source with authority on it (protocol/authority.py): with
+the deployment's master key file the tool signs as the operator (``OPERATOR_SOURCE_ID``), with a
+module key file as that module (authority as the deployment gives it). Given the deployment's
+authority table, a tool with the master file also enforces it on what it hears, so no forged
+time-sync reply can skew the clock its orders are stamped with (and have them refused as stale).
 """
 
 from __future__ import annotations
@@ -13,12 +19,15 @@ import time
 from dataclasses import dataclass
 
 from protocol import channels
+from protocol.auth import Keyring, default_keyring
+from protocol.authority import OPERATOR_SOURCE_ID, Authority
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, StopCommand, StopMode
 from rascal.bustools import tool_bus
+from rascal.timeclient import MIN_REQUEST_PERIOD_NS
 
 REPEAT_S = 0.2
-SYNC_POLL_S = 0.1
+SYNC_POLL_S = MIN_REQUEST_PERIOD_NS / 1e9  # as often as the time client will ask: synced in tens of ms
 HOLD_PREFIXES = ("estop", "pause")  # control's stop_reason while an operator stop holds
 
 
@@ -38,9 +47,28 @@ def in_force(mode: StopMode, stop_reason: str) -> bool:
     return stop_reason.startswith("estop" if mode is StopMode.ESTOP else HOLD_PREFIXES)
 
 
-def give_order(url: str | None, mode: StopMode, reason: str, timeout_s: float, sync_s: float = 1.0) -> OrderResult:
-    """Synchronise (for up to ``sync_s``), then send the order until control obeys or ``timeout_s``."""
-    bus, time_client = tool_bus(url)
+def order_source_id(keyring: Keyring) -> int | None:
+    """Whom an order comes from: the operator with the master file, a module key file's own
+    source, else (a legacy key file, no authority) a tool's random id."""
+    if keyring.signing_master is not None:
+        return OPERATOR_SOURCE_ID
+    return keyring.source_id
+
+
+def give_order(
+    url: str | None,
+    mode: StopMode,
+    reason: str,
+    timeout_s: float,
+    sync_s: float = 1.0,
+    authority: dict[str, tuple[int, ...]] | None = None,
+) -> OrderResult:
+    """Synchronise (for up to ``sync_s``), then send the order until control obeys or ``timeout_s``.
+    ``authority``: the deployment's table (channel -> source ids), enforced with a master file."""
+    keyring = default_keyring()
+    bus, time_client = tool_bus(url, keyring=keyring, source_id=order_source_id(keyring))
+    if authority is not None and keyring.signing_master is not None:
+        bus.enforce(Authority.derive(authority, keyring.signing_master))
     start = time.monotonic()
     sends = 0
     heard: list[str] = []

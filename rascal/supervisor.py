@@ -8,11 +8,18 @@ module that crashes on start cannot spin. Each child is told its restart count (
 which it reports in its own heartbeat. Each heartbeat's CPU (% of one core, children included)
 is kept for the run's summary and held to the child's budget: over it for ``CPU_BUDGET_BEATS``
 heartbeats in a row (10 s) is a WARNING HealthEvent ``cpu_budget``, once until it comes back under.
+
+Each child gets its own module key file (``RUN_DIR/keys/LABEL.key``, owner-only, removed when the
+run ends) as its ``RASCAL_KEY_FILE``: the MAC keys, the child's own signing key and the
+deployment's authority table, derived from the master file the supervisor holds; never the master
+nor another module's key. With a legacy key file (no ``signing_master``) children get that file,
+as before command authority, and the supervisor warns once.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -21,9 +28,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol import channels
+from protocol.auth import Keyring, write_keyring
+from protocol.authority import Authority
 from protocol.codec import Envelope
 from protocol.messages import ModuleState, ModuleStatus, Severity
-from rascal.deployment import Deployment, ModuleSpec
+from rascal.deployment import SUPERVISOR_SOURCE_ID, Deployment, ModuleSpec
 from rascal.module import RUN_DIR_ENV, Module, Runtime
 from rascal.sdnotify import NOTIFY_SOCKET_ENV
 
@@ -33,7 +42,6 @@ STABLE_S = 10.0  # a child that ran this long before failing restarts at once
 FIRST_BACKOFF_S = 0.25
 MAX_BACKOFF_S = 5.0
 STOP_WAIT_S = 5.0
-SUPERVISOR_SOURCE_ID = 9
 CPU_BUDGET_BEATS = 10
 
 
@@ -113,9 +121,28 @@ class Supervisor(Module):
         self.env = env if env is not None else dict(os.environ)
         self.children = [Child(spec) for spec in (*extra, *deployment.on_host(host))]
         self._by_source = {child.spec.source_id: child for child in self.children}
+        self.key_dir = log_dir / "keys"
+        keyring = runtime.bus.codec.keyring
+        master = keyring.signing_master if keyring is not None else None
+        # What the module key files are derived from; None when the key file cannot derive them.
+        self._module_keys: tuple[Keyring, Authority] | None = None
+        if keyring is not None and master is not None:
+            authority = Authority.derive(deployment.authority, master)
+            self._module_keys = (keyring, authority)
+            # It holds the master, but knows the deployment: no forged time reply skews its clock
+            # (and with it the pause it sends when the run ends).
+            runtime.bus.enforce(authority)
 
     def on_start(self) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
+        keyring = self.bus.codec.keyring
+        if keyring is not None and keyring.legacy:
+            self.report(
+                Severity.WARNING,
+                "no_command_authority",
+                "the key file has no signing_master: every module gets it whole and can forge commands "
+                "(`rascal keygen` writes one with it)",
+            )
         self.bus.subscribe(channels.MODULE_STATUS, self.on_status)
         for child in self.children:
             self._start(child)
@@ -123,6 +150,7 @@ class Supervisor(Module):
 
     def on_stop(self) -> None:
         self.stop_children()
+        shutil.rmtree(self.key_dir, ignore_errors=True)  # a run directory is shared and kept: keys are not
 
     def on_status(self, status: ModuleStatus, envelope: Envelope) -> None:
         child = self._by_source.get(envelope.source_id)
@@ -205,6 +233,9 @@ class Supervisor(Module):
             child.restarts += 1
         command = module_command(self.deployment, spec, child.restarts)
         env = module_environment(self.deployment, self.env)
+        key_file = self.module_key_file(spec)
+        if key_file is not None:
+            env["RASCAL_KEY_FILE"] = str(key_file.resolve())
         env[RUN_DIR_ENV] = str(self.log_dir.resolve())  # where a module may leave run artefacts
         env.update(spec.environment())  # e.g. the deployment's link faults for this module
         log = (self.log_dir / f"{spec.label}.log").open("ab")
@@ -222,6 +253,17 @@ class Supervisor(Module):
         child.started_s = time.monotonic()
         child.restart_due_s = None
         child.status = None
+
+    def module_key_file(self, spec: ModuleSpec) -> Path | None:
+        """``spec``'s module key file, written on its first start; None without a master to derive it."""
+        if self._module_keys is None:
+            return None
+        keyring, authority = self._module_keys
+        path = self.key_dir / f"{spec.label}.key"
+        if not path.exists():
+            self.key_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+            write_keyring(path, keyring.for_module(spec.source_id, authority), overwrite=True)
+        return path
 
 
 def module_command(deployment: Deployment, spec: ModuleSpec, restarts: int = 0) -> list[str]:

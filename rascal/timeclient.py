@@ -17,6 +17,10 @@ OUTSTANDING_REQUESTS = 32
 # received sixteen times: a third of an idle module's CPU (py-spy on the health module).
 SETTLED_REQUEST_PERIOD_NS = 500_000_000
 SETTLED_ERROR_BOUND_NS = 1_000_000  # a jittery link keeps asking at the callers' rate until this good
+# However fast a caller calls (a tool that asks whenever its poll returns is woken by its own
+# request): every request costs the master a signed reply, and a flood of them delays each reply
+# past the 32 outstanding nonces, so that none is ever used.
+MIN_REQUEST_PERIOD_NS = 10_000_000
 
 
 class TimeClient:
@@ -24,7 +28,9 @@ class TimeClient:
 
     Only replies that echo the t1 of one of our own outstanding requests count, so replayed or
     foreign replies cannot steer the clock (the freshness window cannot protect this channel,
-    since an unsynchronised node cannot judge freshness yet).
+    since an unsynchronised node cannot judge freshness yet). Where the bus enforces command
+    authority, such a reply must also be signed by a source with authority on TIME_SYNC: checked
+    here, for the few replies this node uses, rather than by every node for every reply.
     """
 
     def __init__(self, bus: Bus, clock: SharedClock) -> None:
@@ -37,11 +43,14 @@ class TimeClient:
         bus.subscribe(channels.TIME_SYNC, self._on_time_sync)
 
     def request(self) -> None:
-        """Ask the master for the time: every call (callers call at 10 Hz) until the estimate has
-        settled within SETTLED_ERROR_BOUND_NS, then at most once per SETTLED_REQUEST_PERIOD_NS."""
+        """Ask the master for the time: every call (callers call at 10 Hz; at most once per
+        MIN_REQUEST_PERIOD_NS) until the estimate has settled within SETTLED_ERROR_BOUND_NS, then
+        at most once per SETTLED_REQUEST_PERIOD_NS."""
         nonce = self.clock.local_ns()
         last = self._last_request_ns
-        if last is not None and nonce - last < SETTLED_REQUEST_PERIOD_NS and self.settled(nonce):
+        if last is not None and (
+            nonce - last < MIN_REQUEST_PERIOD_NS or (nonce - last < SETTLED_REQUEST_PERIOD_NS and self.settled(nonce))
+        ):
             return
         self._last_request_ns = nonce
         _seq, data = self.bus.encode(channels.TIME_SYNC, TimeSync(TimeSyncKind.REQUEST, self.bus.source_id, nonce))
@@ -62,9 +71,10 @@ class TimeClient:
     def _on_time_sync(self, msg: TimeSync, envelope: Envelope) -> None:
         if msg.kind != TimeSyncKind.REPLY or msg.client_source_id != self.bus.source_id:
             return
-        sent_local_ns = self._outstanding.pop(msg.t1_local_ns, None)
-        if sent_local_ns is None:
+        # A forged reply echoing a genuine nonce must not use it up: the genuine reply follows.
+        if msg.t1_local_ns not in self._outstanding or not self.bus.authorized(envelope):
             return
+        sent_local_ns = self._outstanding.pop(msg.t1_local_ns)
         self.replies += 1
         self.clock.estimator.add_sample(sent_local_ns, msg.t2_master_ns, msg.t3_master_ns, envelope.recv_local_ns)
 

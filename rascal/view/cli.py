@@ -19,8 +19,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from protocol import channels
-from protocol.auth import TAG_BYTES, KeyFileError, default_keyring, load_keyring
-from protocol.codec import FLAG_SIGNED, HEADER_BYTES, decode_body
+from protocol.auth import KeyFileError, default_keyring, load_keyring
+from protocol.codec import decode_body
 from protocol.errors import ProtocolError
 from protocol.schema import info_for_class
 from protocol.transport import UrlError
@@ -28,7 +28,7 @@ from rascal.bus import Bus
 from rascal.bustools import TOOL_SOURCE_IDS
 from rascal.clock import SharedClock
 from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
-from rascal.logread import END_METADATA, Datagram, RecordingError, Scan, iter_datagrams
+from rascal.logread import END_METADATA, Datagram, RecordingError, Scan, body_of, iter_datagrams
 from rascal.module import Runtime
 from rascal.view.module import HEALTH_PERIOD_S, TRAIL_PERIOD_S, Publisher, Viewer, ViewerConfig, course_of, open_outputs
 from rascal.view.server import ViewServerError
@@ -128,10 +128,8 @@ def _feed(state: ViewState, datagram: Datagram) -> None:
     state.count(datagram.channel, datagram.log_time_ns)
     if DRAWN_TYPE_IDS.get(datagram.channel) != datagram.type_id:
         return  # not drawn, or a type this channel does not carry
-    data = datagram.data
-    end = len(data) - TAG_BYTES if data[3] & FLAG_SIGNED else len(data)
     try:
-        msg = decode_body(datagram.type_id, memoryview(data)[HEADER_BYTES + data[10] : end])
+        msg = decode_body(datagram.type_id, body_of(datagram.data))
     except ProtocolError:
         state.bad["undecodable"] = state.bad.get("undecodable", 0) + 1
         return

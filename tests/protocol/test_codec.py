@@ -11,6 +11,7 @@ from protocol import messages as m
 from protocol.auth import TAG_BYTES, Keyring
 from protocol.codec import (
     FLAG_FRAGMENT,
+    FLAG_SIGNATURE,
     FLAG_SIGNED,
     HEADER,
     HEADER_BYTES,
@@ -22,6 +23,7 @@ from protocol.codec import (
 )
 from protocol.errors import ProtocolError, Reason
 from protocol.schema import info_for_class
+from protocol.signing import SIGNATURE_BYTES
 from tests.protocol.wire_samples import SAMPLES, T0_NS, WRONG_KEY, keyring, seal
 
 GPS = m.GpsFix(35.0533, -117.5694, 712.4, 0.35, 0.41, 0.9, m.NavQuality.DGPS, 11)
@@ -108,6 +110,10 @@ def _expected_tamper_reason(offset: int, flipped: int, size: int) -> Reason:
     if offset == VERSION_AT:
         return Reason.BAD_VERSION
     if offset == FLAGS_AT:
+        if flipped == FLAG_SIGNED | FLAG_SIGNATURE:  # a signature would have to precede the tag
+            return (
+                Reason.TRUNCATED if HEADER_BYTES + len(CHANNEL) > size - TAG_BYTES - SIGNATURE_BYTES else Reason.BAD_MAC
+            )
         return Reason.BAD_HEADER if flipped & ~FLAG_SIGNED else Reason.UNSIGNED
     if offset in KEY_ID_AT:
         return Reason.UNKNOWN_KEY

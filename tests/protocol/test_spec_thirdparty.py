@@ -47,7 +47,9 @@ TP_MAGIC = b"RB"
 TP_VERSION = 1
 TP_SIGNED = 0x01
 TP_FRAGMENT = 0x02
+TP_SIGNATURE = 0x04
 TP_TAG_BYTES = 16
+TP_SIGNATURE_BYTES = 64
 TP_FRAGMENT_TAG_BYTES = 8
 TP_MAX_MESSAGE = 256 * 1024
 TP_MAX_DATAGRAM = 1400
@@ -189,6 +191,13 @@ def tp_fragment_mac(key: bytes, signed_part: bytes) -> bytes:
     return hashlib.blake2b(signed_part, key=key, digest_size=TP_FRAGMENT_TAG_BYTES).digest()
 
 
+def tp_signing_seed(signing_master: bytes, source_id: int) -> bytes:
+    """SPEC "Signatures": the Ed25519 seed of a source (an Ed25519 library does the rest)."""
+    return hashlib.blake2b(
+        struct.pack("<H", source_id), key=signing_master, person=b"rascal-ed25519", digest_size=32
+    ).digest()
+
+
 # -- messages -------------------------------------------------------------------------------------
 
 
@@ -202,6 +211,8 @@ class TpMessage(NamedTuple):
     t_pub_ns: int
     channel: str
     body: bytes
+    signature: bytes  # empty without SIGNATURE
+    signed_part: bytes  # what the signature covers
 
 
 def tp_open(data: bytes, keys: dict[int, bytes] | None) -> TpMessage:
@@ -217,17 +228,18 @@ def tp_open(data: bytes, keys: dict[int, bytes] | None) -> TpMessage:
         raise TpError("bad_magic")
     if version != TP_VERSION:
         raise TpError("bad_version")
-    if flags & ~TP_SIGNED:
+    if flags & ~(TP_SIGNED | TP_SIGNATURE) or (flags & TP_SIGNATURE and not flags & TP_SIGNED):
         raise TpError("bad_header", f"flags {flags:#x}")
-    end = len(data)
+    end = tag_start = len(data)
     if flags & TP_SIGNED:
-        end -= TP_TAG_BYTES
+        tag_start -= TP_TAG_BYTES
+        end = tag_start - (TP_SIGNATURE_BYTES if flags & TP_SIGNATURE else 0)
         if end < TP_HEADER.size + channel_len:
             raise TpError("truncated")
         if keys is not None:
             if key_id not in keys:
                 raise TpError("unknown_key")
-            if not hmac.compare_digest(tp_mac(keys[key_id], data[:end]), data[end:]):
+            if not hmac.compare_digest(tp_mac(keys[key_id], data[:tag_start]), data[tag_start:]):
                 raise TpError("bad_mac")
     elif keys is not None:
         raise TpError("unsigned")
@@ -237,7 +249,19 @@ def tp_open(data: bytes, keys: dict[int, bytes] | None) -> TpMessage:
     channel = data[TP_HEADER.size : body_start].decode("ascii")
     if not TP_CHANNEL.fullmatch(channel):
         raise TpError("bad_header", f"channel {channel!r}")
-    return TpMessage(flags, type_id, source_id, key_id, seq, t_meas, t_pub, channel, data[body_start:end])
+    return TpMessage(
+        flags,
+        type_id,
+        source_id,
+        key_id,
+        seq,
+        t_meas,
+        t_pub,
+        channel,
+        data[body_start:end],
+        data[end:tag_start],
+        data[:end],
+    )
 
 
 def tp_decode_body(schema: TpSchema, type_id: int, body: bytes) -> dict[str, Any]:
@@ -306,15 +330,17 @@ def tp_encode(
     key: bytes | None,
     key_id: int = 0,
     type_name: str | None = None,
+    sign: Any = None,
 ) -> bytes:
-    """Forge one whole message; signed iff ``key`` is given."""
+    """Forge one whole message; signed iff ``key`` is given, with a signature iff ``sign`` (an
+    Ed25519 signing function of the source's seed) is also given."""
     assert TP_CHANNEL.fullmatch(channel)
     type_id = schema.names[type_name] if type_name else schema.channels[channel]
     body = msgpack.packb(tp_encode_value(schema, schema.layouts[type_id], fields), use_bin_type=True)
     head = TP_HEADER.pack(
         TP_MAGIC,
         TP_VERSION,
-        TP_SIGNED if key else 0,
+        (TP_SIGNED | (TP_SIGNATURE if sign else 0)) if key else 0,
         type_id,
         source_id,
         key_id if key else 0,
@@ -325,6 +351,8 @@ def tp_encode(
         t_pub_ns,
     )
     data = head + channel.encode("ascii") + body
+    if key and sign:
+        data += sign(data)
     if key:
         data += tp_mac(key, data)
     assert len(data) <= TP_MAX_MESSAGE
@@ -963,7 +991,7 @@ def test_spec_test_vector(spec: str, schema: TpSchema) -> None:
     vector = bytes.fromhex("".join(line.split("|")[0][6:] for line in hex_block.splitlines()))
     key = bytes(range(32))
     command = ActuatorCommand(0.25, 0.0, -0.125, "")
-    seq, t_meas_ns, t_pub_ns = 1_700_000_000_000_000, 1_700_000_000_000_000_000, 1_700_000_000_002_000_000
+    seq, t_meas_ns, t_pub_ns = _VECTOR_HEADER
     ours = Codec(Keyring({1: key}, 1)).encode(b"ACTUATOR_COMMAND", command, 7, seq, t_meas_ns, t_pub_ns)
     assert vector == ours
     msg = tp_open(vector, {1: key})
@@ -975,6 +1003,72 @@ def test_spec_test_vector(spec: str, schema: TpSchema) -> None:
         "stop_reason": "",
     }
     assert f"`{vector[-16:].hex()}`" in section
+    _check_signed_test_vector(section, vector, schema)
+
+
+def _check_signed_test_vector(section: str, vector: bytes, schema: TpSchema) -> None:
+    """The example's signed twin: the seed and public key the SPEC states, and the bytes."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+
+    from protocol.auth import Keyring
+    from protocol.codec import Codec
+    from protocol.messages import ActuatorCommand
+    from protocol.signing import Signer
+
+    seed = tp_signing_seed(bytes(range(32, 64)), 7)
+    public = Ed25519PrivateKey.from_private_bytes(seed).public_key().public_bytes_raw()
+    assert f"`{seed.hex()}`" in section and f"`{public.hex()}`" in section
+    blocks = re.findall(r"```text\n(.*?)```", section, re.S)
+    tail = bytes.fromhex("".join(line.split("|")[0][6:] for line in blocks[1].splitlines()))
+    signed = vector[:3] + bytes([TP_SIGNED | TP_SIGNATURE]) + vector[4:-16] + tail
+    ours = Codec(Keyring({1: bytes(range(32))}, 1)).encode(
+        b"ACTUATOR_COMMAND", ActuatorCommand(0.25, 0.0, -0.125, ""), 7, *_VECTOR_HEADER, Signer(7, seed)
+    )
+    assert signed == ours and len(signed) == 161
+    msg = tp_open(signed, {1: bytes(range(32))})
+    Ed25519PublicKey.from_public_bytes(public).verify(msg.signature, msg.signed_part)
+    assert tp_decode_body(schema, msg.type_id, msg.body)["steering_rad"] == -0.125
+
+
+_VECTOR_HEADER = (1_700_000_000_000_000, 1_700_000_000_000_000_000, 1_700_000_000_002_000_000)
+
+
+def test_a_third_party_command_signature_passes_an_enforcing_node(capture: Capture, schema: TpSchema) -> None:
+    """Signed as SPEC.md says (seed by the KDF, Ed25519 over header, channel and body), a command
+    from the source with authority is accepted by a node holding a module key file; the same
+    command unsigned, or signed by a source without authority, is rejected as unauthorized."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from protocol.auth import Keyring
+    from protocol.authority import Authority
+    from protocol.transport import MemTransport
+    from rascal.bus import Bus
+    from rascal.clock import ManualClock
+
+    keys, active = tp_load_keys(capture.directory / "bus.key")
+    master = Keyring(keys, active, random.randbytes(32))
+    table = {"ACTUATOR_COMMAND": [40], "STOP": [], "PATH": [], "CONFIG": [], "TIME_SYNC": [1]}
+    hub = f"spec-thirdparty-authority-{random.getrandbits(64):x}"
+    clock = ManualClock()
+    bus = Bus(MemTransport(hub), 5, master.for_module(5, Authority.derive(table, master.signing_master)), clock)
+    received: list[Any] = []
+    bus.subscribe("ACTUATOR_COMMAND", lambda msg, env: received.append((msg, env.source_id)))
+    wire = MemTransport(hub)
+    command = {"throttle": 0.5, "brake": 0.0, "steering_rad": 0.1, "stop_reason": ""}
+    for seq, (source_id, signer) in enumerate([(40, 40), (40, None), (41, 41), (40, 41)], start=1):
+        sign = (
+            Ed25519PrivateKey.from_private_bytes(tp_signing_seed(master.signing_master, signer)).sign
+            if signer
+            else None
+        )
+        header = {"source_id": source_id, "seq": seq, "t_meas_ns": clock.now_ns(), "t_pub_ns": clock.now_ns()}
+        wire.send(
+            "ACTUATOR_COMMAND",
+            tp_encode(schema, "ACTUATOR_COMMAND", command, **header, key=keys[active], key_id=active, sign=sign),
+        )
+        bus.poll()
+    assert [source for _msg, source in received] == [40]
+    assert dict(bus.rejects) == {(40, "unauthorized"): 2, (41, "unauthorized"): 1}
 
 
 def test_port_mapping_matches_the_transport(schema: TpSchema) -> None:
