@@ -67,7 +67,7 @@ SUPERVISOR_SOURCE_ID = 9  # each host's supervisor: this, offset per host
 OPERATOR = "operator"  # the operator's tools: protocol.authority.OPERATOR_SOURCE_ID
 SUPERVISOR = "supervisor"  # every host's supervisor (it pauses the vehicle when a run ends)
 # Who may publish on each governed channel unless [authority] says: these words, or every module
-# of the package named.
+# of the package named (its default source id when the deployment runs none).
 DEFAULT_AUTHORITY: dict[str, tuple[str, ...]] = {
     channels.ACTUATOR_COMMAND: ("control",),
     channels.PATH: ("brain",),
@@ -343,7 +343,13 @@ class _Parser:
             ids: list[int] = []
             if channel not in table:
                 for name in DEFAULT_AUTHORITY[channel]:
-                    ids += words.get(name, ()) or [spec.source_id for spec in specs if spec.module == name]
+                    # A package the deployment does not run (e.g. a time service started by hand)
+                    # is trusted at its default source id: else nobody could be.
+                    ids += (
+                        words.get(name, ())
+                        or [spec.source_id for spec in specs if spec.module == name]
+                        or [module_class(name).default_source_id]
+                    )
             else:
                 names = table[channel]
                 if not isinstance(names, list):

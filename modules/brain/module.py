@@ -20,7 +20,7 @@ from brain.course_config import DEFAULT_COURSE, load_course
 from brain.fusion.fusion import HazardFusion
 from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
 from brain.planning.planner import PlanMode, Planner, PlanResult
-from brain.stall import StallWatch, Standing
+from brain.stall import STANDING_MPS, StallWatch, Standing
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import (
@@ -49,6 +49,7 @@ OBSTACLE_SENSORS = (*HORIZONTAL_LIDARS, STEREO)  # whose age a path's t_input_ns
 CYCLES_KEPT = 3000  # planning cycles the heartbeat's p99 spans: 5 min at 10 Hz
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
 FINISH_M = 5.0  # standing this close to the course's end is the finish (the referee's distance)
+BLOCKED_SEARCH_PERIOD_S = 1.0  # standing at a blocked corridor: how often to look for a way again
 MODE_SEVERITY = {
     DriveMode.NORMAL: Severity.INFO,
     DriveMode.LIDAR_DEGRADED: Severity.WARNING,
@@ -93,6 +94,7 @@ class Brain(Module):
         self.cycle_ms = 0.0
         self.cycles_ms: deque[float] = deque(maxlen=CYCLES_KEPT)  # for the heartbeat's p99
         self.last_rephase_ns = 0  # monotonic time a stereo report last started a cycle
+        self.last_search_ns = 0  # monotonic time the planner last ran
         self.published = 0
         self.refused = 0
 
@@ -193,24 +195,42 @@ class Brain(Module):
         cap = min(assessment.speed_cap_mps, NO_CAP_MPS)
         # The filter's speed wanders a few mm/s below zero at rest; the vehicle never reverses.
         pose = state._replace(speed_mps=max(0.0, state.speed_mps))
-        try:
-            self.last = self.planner.plan(pose, cost_map.window, cost_map.hazard_probability, cost_map.cost, cap)
-        except ValueError as exc:  # a non-finite state: no path this cycle, control brakes on its age
-            self.refused += 1
-            if self.refused == 1 or self.refused % 100 == 0:
-                self.report(Severity.ERROR, "plan_refused", f"{exc} ({self.refused} cycles so far)")
-            return
+        resting = self.resting_at_a_blockage(pose.speed_mps)
+        if not resting:
+            try:
+                self.last = self.planner.plan(pose, cost_map.window, cost_map.hazard_probability, cost_map.cost, cap)
+            except ValueError as exc:  # a non-finite state: no path this cycle, control brakes on its age
+                self.refused += 1
+                if self.refused == 1 or self.refused % 100 == 0:
+                    self.report(Severity.ERROR, "plan_refused", f"{exc} ({self.refused} cycles so far)")
+                return
+            self.last_search_ns = time.monotonic_ns()
+        assert self.last is not None
         self.watch_standing(pose.speed_mps, self.last)
         oldest = self.health.oldest_live_ns(OBSTACLE_SENSORS, self.now_ns())
         path = self.last.path._replace(t_input_ns=oldest or 0)
         self.bus.publish(channels.PATH, path, t_meas_ns=self.state_t_ns)
         self.published += 1
-        self.cycle_ms = (time.perf_counter() - started) * 1e3
-        self.cycles_ms.append(self.cycle_ms)
+        if not resting:
+            self.cycle_ms = (time.perf_counter() - started) * 1e3
+            self.cycles_ms.append(self.cycle_ms)
+
+    def resting_at_a_blockage(self, speed_mps: float) -> bool:
+        """Standing at a blocked corridor, the search that finds nothing runs once a second, not
+        every cycle (up to its expansion cap each time: most of a core at 10 Hz); between, the
+        stop path is sent again, so control keeps a fresh path and holds the vehicle."""
+        return (
+            self.last is not None
+            and self.stall.state is Standing.BLOCKED
+            and speed_mps < STANDING_MPS
+            and time.monotonic_ns() - self.last_search_ns < BLOCKED_SEARCH_PERIOD_S * 1e9
+        )
 
     def watch_standing(self, speed_mps: float, plan: PlanResult) -> None:
         """Report a blocked corridor or a stall; on a stall, plan afresh from where it stands."""
-        way_ahead = plan.mode is not PlanMode.STOP
+        # A search that ends short of its goal leads only to the reachable cells nearest it.
+        searched_through = plan.mode is PlanMode.SEARCH and plan.reached_goal
+        way_ahead = plan.mode in (PlanMode.KEEP, PlanMode.REPLAN) or searched_through
         for event in self.stall.update(self.now_ns(), speed_mps, plan.station_m, way_ahead, self.held_by_operator):
             self.report(event.severity, event.code, event.text)
             if event.recover:

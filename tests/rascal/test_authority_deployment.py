@@ -53,7 +53,9 @@ def test_the_default_authority_follows_the_modules_that_publish(tmp_path: Path) 
     assert three[channels.STOP] == (9, 109, 209, OPERATOR_SOURCE_ID)  # every host's supervisor
     small = load_deployment(write(tmp_path, SMALL)).authority
     assert small[channels.ACTUATOR_COMMAND] == (40,)  # by package: labelled "ctl"
-    assert small[channels.PATH] == ()  # no brain here: nobody
+    assert small[channels.PATH] == (30,)  # no brain here: one started by hand, at its default id
+    no_master = load_deployment(write(tmp_path, SMALL.replace("[modules.time_service]\n", ""))).authority
+    assert no_master[channels.TIME_SYNC] == (1,)  # the time service run by hand is still trusted
 
 
 def test_an_authority_table_names_labels_words_and_ids(tmp_path: Path) -> None:
