@@ -30,20 +30,9 @@ from tests.modules.control.closed_loop import signed_distance
 
 pytestmark = pytest.mark.slow
 
-# 30 m east, then a 48 degree bend to the north-east for another 90 m; 25 mph limit.
-RDDF = "1,34.8650000,-116.8900000,30,25\n2,34.8650000,-116.8896700,30,25\n3,34.8656000,-116.8890000,30,25\n"
-SCENARIO = '[scenario]\nrddf = "course.rddf"\nseed = 11\n'
 PATH_SPEED_MPS = 8.0  # the test's planner caps the course speeds, to keep the run short
 PATH_AHEAD_M = 80
 ESTOP_DEADLINE_S = 0.2  # a reaction deadline for the stop channel, not a benchmark
-
-
-@pytest.fixture
-def scenario(tmp_path: FilePath) -> FilePath:
-    (tmp_path / "course.rddf").write_text(RDDF)
-    path = tmp_path / "scenario.toml"
-    path.write_text(SCENARIO)
-    return path
 
 
 class Stand:

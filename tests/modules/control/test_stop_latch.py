@@ -15,16 +15,7 @@ from modules.control.stop_latch import RUN, StopLatch, StopOrder
 from protocol.messages import StopMode
 from rascal.operator_stop import in_force
 from tests.conftest import ROOT, Processes
-from tests.modules.control.test_control_process import RDDF, SCENARIO, Stand
-
-
-@pytest.fixture
-def scenario(tmp_path: FilePath) -> FilePath:
-    (tmp_path / "course.rddf").write_text(RDDF)
-    path = tmp_path / "scenario.toml"
-    path.write_text(SCENARIO)
-    return path
-
+from tests.modules.control.test_control_process import Stand
 
 # -- the latch --------------------------------------------------------------------------------
 
