@@ -30,7 +30,7 @@ from rascal.deployment import load_deployment
 from rascal.timesync import SyncState
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
-from tests.modules.control.test_control_process import RDDF, SCENARIO
+from tests.modules.control.short_course import RDDF, SCENARIO
 
 pytestmark = pytest.mark.slow
 
