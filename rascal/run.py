@@ -104,7 +104,8 @@ class RunSupervisor(Supervisor):
 
     def on_start(self) -> None:
         super().on_start()
-        self.bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)
+        # The INS's 100 Hz does not wake the supervisor: the view reads the newest at its own rate.
+        self.bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state, wake=False)
         self.bus.subscribe(channels.HEALTH, lambda event, _env: self.events.append(event))
         self.every(VIEW_PERIOD_S, self.refresh, priority=1)
         # Drawn when the view changes (every VIEW_PERIOD_S), not by rich's own 4 Hz refresh thread.
