@@ -7,7 +7,8 @@
  * body has exactly the layout this build declares. For anything else it returns None and the
  * caller runs the Python twin, which accepts the other layout versions or raises the precise
  * ProtocolError. So C accepts a subset of what Python accepts, builds the same values, and words
- * no error but the replay guard's.
+ * no error but two: the replay guard's, and bad_mac for a tag it has checked and found wrong, so
+ * that no datagram's tag is computed twice (a forger must not buy two or three MACs with one).
  *
  * Fragment datagrams (flags bit 0x02) never take this path: locate() refuses them and the Bus
  * sends them to the Python reassembler (protocol/framing.py), which checks each fragment's own
@@ -29,7 +30,7 @@
 #include <string.h>
 
 /* Bumped whenever a signature or a plan's meaning changes: Python ignores a stale build. */
-#define FASTPATH_ABI 5
+#define FASTPATH_ABI 6
 
 #define PREFIX_BYTES 12
 #define HEADER_BYTES 36
@@ -287,6 +288,19 @@ static PyObject *seal(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     return out;
 }
 
+static PyObject *ProtocolError, *reason_replay, *reason_stale, *reason_future, *reason_bad_mac;
+
+/* Raises ProtocolError(reason, detail, source_id); steals detail (NULL: an error is set). */
+static void reject(PyObject *reason, long source_id, PyObject *detail) {
+    if (detail == NULL) return;
+    PyObject *error = PyObject_CallFunction(ProtocolError, "OOl", reason, detail, source_id);
+    Py_DECREF(detail);
+    if (error != NULL) {
+        PyErr_SetObject((PyObject *)Py_TYPE(error), error);
+        Py_DECREF(error);
+    }
+}
+
 /* A message that passed every check open() makes, located in its datagram. */
 typedef struct {
     const unsigned char *p;
@@ -294,7 +308,9 @@ typedef struct {
     unsigned channel_len;
 } Located;
 
-/* The checks of Codec.open: 1 authentic and well-formed, 0 not (Python words why), -1 error. */
+/* The checks of Codec.open: 1 authentic and well-formed, 0 not (Python words why), -1 error,
+ * which is ProtocolError(bad_mac) for a wrong tag: Python, given the same datagram, would pass
+ * every check made before the tag and then refuse it as bad_mac, so it is refused here, once. */
 static int locate(PyObject *data, PyObject *macs_by_id, Py_ssize_t max_bytes, Located *m) {
     if (!PyBytes_CheckExact(data)) return 0;
     Py_ssize_t size = PyBytes_GET_SIZE(data);
@@ -316,7 +332,10 @@ static int locate(PyObject *data, PyObject *macs_by_id, Py_ssize_t max_bytes, Lo
         if (compute_tag(mac, (const char *)p, body_end, tag) < 0) return -1;
         unsigned char diff = 0; /* constant time, as hmac.compare_digest */
         for (int i = 0; i < TAG_BYTES; i++) diff |= tag[i] ^ p[body_end + i];
-        if (diff) return 0;
+        if (diff) {
+            reject(reason_bad_mac, get_u16(p + 6), PyUnicode_FromString(""));
+            return -1;
+        }
     } else if (macs_by_id != Py_None || body_start >= body_end) {
         return 0;
     }
@@ -359,7 +378,8 @@ static int check_keys_arg(PyObject *macs_by_id) {
 }
 
 /* open(data, opened_cls, macs_by_id, max_message_bytes) -> Opened | None
- * macs_by_id: dict of key id -> Mac, or None for the explicit unsigned mode. */
+ * macs_by_id: dict of key id -> Mac, or None for the explicit unsigned mode. Raises
+ * ProtocolError(bad_mac) for a wrong tag. */
 static PyObject *open_message(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
     if (nargs != 4) {
         PyErr_SetString(PyExc_TypeError, "open() takes 4 arguments");
@@ -719,7 +739,6 @@ typedef struct {
     Stream *streams;
 } ReplayGuardObject;
 
-static PyObject *ProtocolError, *reason_replay, *reason_stale, *reason_future;
 static PyTypeObject ReplayGuardType;
 
 static int limit_of(PyObject *limits, const char *name, long long *out) {
@@ -825,16 +844,6 @@ static Py_ssize_t new_stream(ReplayGuardObject *self, PyObject *key, uint64_t se
     link_newest(self, i);
     self->count++;
     return i;
-}
-
-static void reject(PyObject *reason, long source_id, PyObject *detail) {
-    if (detail == NULL) return;
-    PyObject *error = PyObject_CallFunction(ProtocolError, "OOl", reason, detail, source_id);
-    Py_DECREF(detail);
-    if (error != NULL) {
-        PyErr_SetObject((PyObject *)Py_TYPE(error), error);
-        Py_DECREF(error);
-    }
 }
 
 static void reject_age(PyObject *reason, long source_id, const char *format, __int128 age_ns) {
@@ -996,8 +1005,9 @@ static PyTypeObject ReplayGuardType = {
  *   -> False                         authentic, but for a channel nobody here subscribed to
  *   -> None                          anything else, and everything on a governed route (its
  *                                    signature is checked in Python): Python's path decides
- * Raises ProtocolError only for what the replay guard refuses, and asks the guard last, so that
- * a message left to Python has left no trace in the guard that Python's path would trip over. */
+ * Raises ProtocolError for a wrong tag (bad_mac, as open() does) and for what the replay guard
+ * refuses, and asks the guard last, so that a message left to Python has left no trace in the
+ * guard that Python's path would trip over. */
 
 typedef struct {
     PyObject_HEAD
@@ -1183,8 +1193,9 @@ PyMODINIT_FUNC PyInit__fastpath(void) {
     reason_replay = PyObject_GetAttrString(reasons, "REPLAY");
     reason_stale = PyObject_GetAttrString(reasons, "STALE");
     reason_future = PyObject_GetAttrString(reasons, "FUTURE");
+    reason_bad_mac = PyObject_GetAttrString(reasons, "BAD_MAC");
     Py_DECREF(reasons);
-    if (!reason_replay || !reason_stale || !reason_future) return NULL;
+    if (!reason_replay || !reason_stale || !reason_future || !reason_bad_mac) return NULL;
     if (PyType_Ready(&ReplayGuardType) < 0 || PyType_Ready(&ReceiverType) < 0 || PyType_Ready(&MacType) < 0) return NULL;
     PyObject *module = PyModule_Create(&module_def);
     if (module == NULL) return NULL;

@@ -137,10 +137,11 @@ class Codec:
     def open(self, data: bytes) -> Opened:
         """Check framing and authenticity of one complete message; raise ProtocolError if bad."""
         if native is not None:
+            # Raises bad_mac itself for a tag it found wrong: no tag is computed twice.
             opened = native.open(data, Opened, self.verifying_macs, self.max_message_bytes)
             if opened is not None:
                 return opened
-            # Refused or unusual (signed in the unsigned mode, not bytes): Python says which.
+            # Refused before the tag, or unusual (signed in the unsigned mode, not bytes): Python says which.
         size = len(data)
         if size < HEADER_BYTES:
             raise ProtocolError(Reason.TRUNCATED, f"{size} B is shorter than the header")

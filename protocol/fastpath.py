@@ -3,7 +3,8 @@
 ``protocol/_fastpath.c`` tags, seals, opens, decodes and replay-checks the common case (a
 well-formed, authentic message of this build's layout) and hands everything else back to the
 Python code in auth.py, codec.py, schema.py, replay.py and rascal/bus.py, which stays the
-reference. ``native`` is that extension, or None where it was not
+reference; except a wrong tag, which C refuses itself (bad_mac), so that no datagram's tag is
+computed twice. ``native`` is that extension, or None where it was not
 built (no compiler at install time), is a stale build, or ``RASCAL_PURE_PYTHON=1`` asks for
 Python (the tests run both ways).
 """
@@ -14,7 +15,7 @@ import os
 from types import ModuleType
 
 # Must equal FASTPATH_ABI in _fastpath.c: a build from older sources is not used.
-ABI = 5
+ABI = 6
 PURE_PYTHON_ENV = "RASCAL_PURE_PYTHON"
 
 

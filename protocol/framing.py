@@ -9,7 +9,10 @@ Each signed fragment carries its own keyed BLAKE2b-64 tag over header and data, 
 the fragment may take any reassembly state: a forger without the key can neither start, evict
 nor poison a partial message. The reassembled message still carries its own MAC and replay
 checks. The bounds (per source and overall) remain against key holders gone mad, and in the
-unsigned mode, where fragments carry no tag, as messages carry none.
+unsigned mode, where fragments carry no tag, as messages carry none: with them, incomplete
+messages hold at most ``max_total_bytes`` (4 MiB) however many sources send, and each is freed
+at its timeout by the receiver's next poll (rascal.bus.Bus.poll wakes for it), whether or not
+another fragment comes.
 """
 
 from __future__ import annotations
@@ -88,6 +91,8 @@ class ReassemblyLimits:
     max_partials_per_source: int = 8
     max_bytes_per_source: int = 1024 * 1024
     max_sources: int = 64
+    # All sources together: the per-source bounds alone would let 64 sources pin 64 MiB.
+    max_total_bytes: int = 4 * 1024 * 1024
 
 
 class _Fragment(NamedTuple):
@@ -115,6 +120,7 @@ class Reassembler:
         # source -> message_id -> partial; both ordered oldest first for eviction.
         self._sources: OrderedDict[int, OrderedDict[int, _Partial]] = OrderedDict()
         self._bytes: dict[int, int] = {}
+        self._total = 0  # sum of self._bytes
         # Every partial by arrival of its first fragment, which is deadline order: expiry pops
         # from the front and costs nothing per source or partial that has not expired.
         self._ages: OrderedDict[tuple[int, int], _Partial] = OrderedDict()
@@ -137,6 +143,7 @@ class Reassembler:
             partials[message_id] = partial
             self._ages[(source_id, message_id)] = partial
             self._enforce_source_bounds(source_id, partials, total_len)
+            self._enforce_total_bound(source_id)
         elif partial.total_len != total_len or partial.count != frag.count:
             raise ProtocolError(Reason.BAD_FRAGMENT, "fragment disagrees with earlier ones", source_id)
         if frag.index in partial.parts:
@@ -167,9 +174,10 @@ class Reassembler:
             raise ProtocolError(Reason.BAD_VERSION, f"version {version}", source_id)
         if flags not in FRAGMENT_FLAGS or count < 2 or index >= count:
             raise ProtocolError(Reason.BAD_FRAGMENT, f"flags {flags:#x}, index {index} of {count}", source_id)
-        # A message over the per-source bound could never be held within it (eviction keeps at
-        # least the newest partial), so it is refused like one over the message limit.
-        if total_len > min(self.limits.max_message_bytes, self.limits.max_bytes_per_source):
+        # A message over the per-source or total bound could never be held within it (eviction
+        # keeps the newest partial), so it is refused like one over the message limit.
+        limits = self.limits
+        if total_len > min(limits.max_message_bytes, limits.max_bytes_per_source, limits.max_total_bytes):
             raise ProtocolError(Reason.OVERSIZED, f"fragmented message of {total_len} B", source_id)
         if count > total_len:
             raise ProtocolError(Reason.BAD_FRAGMENT, f"{count} fragments for {total_len} B", source_id)
@@ -199,6 +207,7 @@ class Reassembler:
         partial = partials.pop(message_id)
         del self._ages[(source_id, message_id)]
         self._bytes[source_id] -= partial.total_len
+        self._total -= partial.total_len
         if not partials:
             del self._sources[source_id]
             del self._bytes[source_id]
@@ -214,8 +223,19 @@ class Reassembler:
             self._discard(source_id, message_id)
             self.dropped.append(ProtocolError(Reason.FRAGMENT_TIMEOUT, f"message {message_id}", source_id))
 
+    def next_expiry_ns(self) -> int | None:
+        """When the oldest incomplete message times out (the clock of ``feed``'s ``now_ns``);
+        None when nothing is pending."""
+        if not self._ages:
+            return None
+        return next(iter(self._ages.values())).first_ns + self.limits.timeout_ns
+
     def pending(self) -> int:
         return len(self._ages)
+
+    def held_bytes(self) -> int:
+        """Bytes reserved for incomplete messages: their declared ``total_len``, summed."""
+        return self._total
 
     def _partials_of(self, source_id: int) -> OrderedDict[int, _Partial]:
         partials = self._sources.get(source_id)
@@ -233,11 +253,24 @@ class Reassembler:
     def _enforce_source_bounds(self, source_id: int, partials: OrderedDict[int, _Partial], new_bytes: int) -> None:
         # Memory is reserved for the declared total up front so a source can't exceed its bound.
         self._bytes[source_id] += new_bytes
+        self._total += new_bytes
         limits = self.limits
         while len(partials) > 1 and (
             len(partials) > limits.max_partials_per_source or self._bytes[source_id] > limits.max_bytes_per_source
         ):
             self._evict(source_id, next(iter(partials)))
+
+    def _enforce_total_bound(self, new_source: int) -> None:
+        """Over the total, evict the oldest partial of the source holding the most (of equals,
+        the least recently active), so one busy source cannot push out a light one's message.
+        The partial just started (the newest of ``new_source``) is never the one evicted; it
+        fits the total alone (``_check``), so the loop ends."""
+        sources = self._sources
+        while self._total > self.limits.max_total_bytes:
+            # max() returns the first of equals, and sources are kept least recently active first.
+            candidates = (s for s in sources if s != new_source or len(sources[s]) > 1)
+            heaviest = max(candidates, key=self._bytes.__getitem__)
+            self._evict(heaviest, next(iter(sources[heaviest])))
 
     def _evict(self, source_id: int, message_id: int) -> None:
         self._discard(source_id, message_id)

@@ -53,6 +53,9 @@ MAX_REJECT_SOURCES = 256
 MAX_CHANNELS = 1024
 LATENCY_SAMPLES = 1024
 ARRIVAL_SAMPLES = 2048
+# A poll that waits for an incomplete message's timeout waits this much longer, so the expiry
+# after the wait finds it due even if the wait's rounding ends it a little early.
+EXPIRY_SLACK_S = 0.001
 # Channels whose freshness and uniqueness the time protocol judges itself (a reply counts only
 # if it echoes an outstanding request's nonce, once): an unsynchronised client must be able to
 # talk to the master, and the master to it, also after a restart with its wall clock stepped
@@ -263,7 +266,12 @@ class Bus:
 
     def poll(self, timeout_s: float = 0.0, budget: int = 10_000) -> int:
         """Wait up to ``timeout_s`` for traffic, then handle what is waiting (at most ``budget``
-        datagrams, so a flood cannot starve the caller's periodic work). Returns datagrams seen."""
+        datagrams, so a flood cannot starve the caller's periodic work). Returns datagrams seen.
+        Returns early when an incomplete fragmented message times out, to free it."""
+        expiry_ns = self.reassembler.next_expiry_ns()
+        if expiry_ns is not None:
+            wait_s = max(0.0, (expiry_ns - self.clock.local_ns()) / 1e9) + EXPIRY_SLACK_S
+            timeout_s = min(timeout_s, wait_s)
         handled = self.transport.receive(self._on_datagram, timeout_s, budget)
         self._check_freshness = self.clock.synced
         if self.reassembler.pending():  # also when no fragment comes to notice the timeout
@@ -283,6 +291,9 @@ class Bus:
         try:
             accepted = None
             if self._receiver is not None and not self._raw_handlers and len(data) > 3 and not data[3] & FLAG_FRAGMENT:
+                # Raises bad_mac for a wrong tag, so Python never computes it again; None leaves
+                # the datagram to Python: refused before its tag, or authentic (and checked again
+                # there, a cost only key holders can cause) but governed or of another layout.
                 accepted = self._receiver.accept(data, recv_ns, recv_local_ns, self._check_freshness)
                 if accepted is False:
                     return  # shares a port with a channel we want; not ours

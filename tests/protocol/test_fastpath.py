@@ -24,6 +24,7 @@ import msgpack
 import pytest
 
 from protocol import channels, codec, fastpath
+from protocol.auth import Keyring
 from protocol.codec import FLAG_SIGNED, Codec, Opened
 from protocol.errors import ProtocolError
 from protocol.framing import fragment
@@ -97,20 +98,32 @@ def _python_open(opener: Codec, data: bytes) -> Opened | ProtocolError:
         codec.native = saved
 
 
+def _fast_open(opener: Codec, data: bytes) -> Opened | ProtocolError | None:
+    try:
+        return native.open(data, Opened, opener.verifying_macs, opener.max_message_bytes)
+    except ProtocolError as error:
+        return error
+
+
 @needs_native
 @pytest.mark.parametrize("signed", [True, False], ids=["signed", "unsigned"])
 def test_open_agrees_with_python_on_mutated_datagrams(signed: bool) -> None:
     """20,000 datagrams from the fuzzer's generators (genuine, replayed, bit-flipped, truncated,
-    rewritten headers, random bytes, resealed bodies...)."""
+    rewritten headers, random bytes, resealed bodies...). A wrong tag C refuses itself, with
+    Python's error, so the tag is never computed twice."""
     keys = keyring() if signed else None
     opener = Codec(keys)
     traffic = Traffic(random.Random(11 + signed), keys, ManualClock(T0_NS))
-    counts = {"same": 0, "left to python": 0}
+    counts = {"same": 0, "left to python": 0, "refused alike": 0}
     for _ in range(20_000):
         for data in traffic.batch():
-            fast = native.open(data, Opened, opener.verifying_macs, opener.max_message_bytes)
+            fast = _fast_open(opener, data)
             slow = _python_open(opener, data)
-            if fast is None:
+            if isinstance(fast, ProtocolError):
+                assert isinstance(slow, ProtocolError) and fast.reason.value == "bad_mac", data.hex()
+                assert (fast.reason, str(fast), fast.source_id) == (slow.reason, str(slow), slow.source_id)
+                counts["refused alike"] += 1
+            elif fast is None:
                 signed_in_unsigned_mode = keys is None and len(data) > 3 and data[3] & FLAG_SIGNED
                 assert isinstance(slow, ProtocolError) or signed_in_unsigned_mode, data.hex()
                 counts["left to python"] += 1
@@ -120,6 +133,7 @@ def test_open_agrees_with_python_on_mutated_datagrams(signed: bool) -> None:
                 assert type(fast) is Opened and type(fast.body) is memoryview
                 counts["same"] += 1
     assert counts["same"] > 2_000 and counts["left to python"] > 2_000, counts
+    assert (counts["refused alike"] > 1_000) == signed, counts
 
 
 @needs_native
@@ -136,6 +150,23 @@ def test_fragments_are_always_left_to_python(signed: bool) -> None:
             assert native.open(part, Opened, opener.verifying_macs, opener.max_message_bytes) is None
             assert receiver.accept(part, T0_NS, T0_NS, True) is None
             assert isinstance(_python_open(opener, part), ProtocolError)
+
+
+@needs_native
+def test_a_wrong_tag_is_refused_as_bad_mac_by_open_and_the_receiver() -> None:
+    """C words this one error itself (besides the replay guard's): the datagram is not handed
+    back to Python, which would compute the tag again."""
+    opener = Codec(keyring())
+    sample = SAMPLES[0]
+    forged = Codec(Keyring.generate()).encode(CHANNEL_OF[type(sample)].encode(), sample, 7, 1, T0_NS, T0_NS)
+    receiver = native.Receiver(opener.verifying_macs, opener.max_message_bytes, {}, ReplayGuard(ReplayLimits()), tuple)
+    for refuse in (
+        lambda: native.open(forged, Opened, opener.verifying_macs, opener.max_message_bytes),
+        lambda: receiver.accept(forged, T0_NS, T0_NS, True),
+    ):
+        with pytest.raises(ProtocolError) as caught:
+            refuse()
+        assert (caught.value.reason.value, caught.value.source_id, str(caught.value)) == ("bad_mac", 7, "bad_mac")
 
 
 # -- typed decode ----------------------------------------------------------------------------

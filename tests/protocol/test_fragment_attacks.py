@@ -22,13 +22,15 @@ from typing import Any
 
 import pytest
 
-from protocol import channels
+from protocol import channels, codec, fastpath
 from protocol import messages as m
-from protocol.auth import FRAGMENT_TAG_BYTES
-from protocol.codec import FLAG_FRAGMENT, FLAG_SIGNED, MAGIC, VERSION
+from protocol.auth import FRAGMENT_TAG_BYTES, Keyring
+from protocol.codec import FLAG_FRAGMENT, FLAG_SIGNED, MAGIC, VERSION, Codec
 from protocol.errors import ProtocolError
+from protocol.fastpath import native
 from protocol.framing import FRAGMENT_HEADER, FRAGMENT_HEADER_BYTES, Reassembler, ReassemblyLimits, fragment
 from protocol.transport import MemTransport, Transport, open_transport
+from rascal import bus as bus_module
 from rascal.bus import Bus
 from rascal.clock import ManualClock, MasterClock
 from tests.protocol.wire_samples import keyring
@@ -295,14 +297,140 @@ def test_pending_partials_are_freed_by_poll_without_further_fragments() -> None:
     wire = open_transport(url)
     victim.subscribe(channels.MAP_SNAPSHOT, lambda msg, env: None)
     keys = keyring()
-    for source_id in range(1, 65):
-        wire.send(channels.MAP_SNAPSHOT, fragment(random.randbytes(200_000), source_id, 1, keyring=keys)[0])
+    for source_id in range(1, 65):  # 64 x 60 KB: within the total bound
+        wire.send(channels.MAP_SNAPSHOT, fragment(random.randbytes(60_000), source_id, 1, keyring=keys)[0])
     victim.poll()
     assert victim.reassembler.pending() == 64
     clock.advance(victim.reassembler.limits.timeout_ns + 1)
     assert victim.poll() == 0
     assert victim.reassembler.pending() == 0
     assert rejects_by_reason(victim) == Counter({"fragment_timeout": 64})
+    victim.close()
+    wire.close()
+
+
+def test_a_poll_wakes_when_an_incomplete_message_times_out() -> None:
+    """A poll asked to wait 5 s on a quiet bus returns when the pending message's timeout
+    passes, and frees it: memory is not pinned until the caller happens to poll again."""
+    url = f"mem://fragment-attacks-wake-{next(_hubs)}"
+    limits = ReassemblyLimits(timeout_ns=100_000_000)
+    victim = Bus(open_transport(url), VICTIM, keyring(), MasterClock(), reassembly_limits=limits)
+    wire = open_transport(url)
+    victim.subscribe(channels.MAP_SNAPSHOT, lambda msg, env: None)
+    wire.send(channels.MAP_SNAPSHOT, fragment(random.randbytes(5000), PUBLISHER, 1, keyring=keyring())[0])
+    victim.poll()
+    assert victim.reassembler.pending() == 1 and victim.reassembler.held_bytes() == 5000
+    started = time.monotonic()
+    victim.poll(5.0)
+    assert time.monotonic() - started < 1.0
+    assert victim.reassembler.pending() == 0 and victim.reassembler.held_bytes() == 0
+    assert rejects_by_reason(victim) == Counter({"fragment_timeout": 1})
+    victim.close()
+    wire.close()
+
+
+def first_fragment(total_len: int, source_id: int, message_id: int, keys: Keyring) -> bytes:
+    """The first 1,000 bytes of a message of ``total_len`` bytes, as a fragment tagged with ``keys``."""
+    flags = FLAG_FRAGMENT | FLAG_SIGNED
+    head = FRAGMENT_HEADER.pack(MAGIC, VERSION, flags, source_id, 0, 300, keys.active, message_id, total_len)
+    part = head + bytes(1000)
+    return part + keys.sign_fragment(part)
+
+
+def test_all_sources_together_hold_at_most_max_total_bytes() -> None:
+    """63 key holders gone mad, each starting four 256 KiB messages (63 MiB used to be held, 64
+    MiB possible), hold at most 4 MiB in all; the heaviest sources pay, so a light source's
+    message survives and completes; and forged fragments, after that, neither take room nor
+    evict anything."""
+    limits = ReassemblyLimits()
+    keys = keyring()
+    reassembler = Reassembler(limits, keys)
+    light_message = random.randbytes(30_000)
+    light = fragment(light_message, PUBLISHER, 1, keyring=keys)
+    assert reassembler.feed(light[0], 0) is None
+    for source_id, message_id in itertools.product(range(100, 163), range(4)):
+        assert reassembler.feed(first_fragment(256 * 1024, source_id, message_id, keys), 0) is None
+        assert reassembler.held_bytes() <= limits.max_total_bytes
+    assert reassembler.held_bytes() > limits.max_total_bytes - 256 * 1024
+    evicted = reassembler.dropped
+    assert evicted and {e.reason.value for e in evicted} == {"fragment_evicted"}
+    assert PUBLISHER not in {e.source_id for e in evicted}
+    held, pending = reassembler.held_bytes(), reassembler.pending()
+    wrong = Keyring.generate()
+    for n in range(500):
+        with pytest.raises(ProtocolError):
+            reassembler.feed(first_fragment(256 * 1024, 1000 + n, n, wrong), 0)
+    assert (reassembler.held_bytes(), reassembler.pending(), len(reassembler.dropped)) == (held, pending, len(evicted))
+    assert [reassembler.feed(part, 0) for part in light[1:]][-1] == light_message
+
+
+def test_one_message_over_the_total_bound_is_oversized() -> None:
+    limits = ReassemblyLimits(max_total_bytes=100_000)
+    reassembler = Reassembler(limits, keyring())
+    with pytest.raises(ProtocolError) as caught:
+        reassembler.feed(first_fragment(100_001, PUBLISHER, 1, keyring()), 0)
+    assert caught.value.reason.value == "oversized" and reassembler.pending() == 0
+
+
+class Counting:
+    """Stands in for ``inner``, counting the calls of its ``method`` in ``calls``."""
+
+    def __init__(self, inner: Any, method: str, calls: Counter[str]) -> None:
+        self.inner, self.method, self.calls = inner, method, calls
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self.inner, name)
+        return counted(attr, name, self.calls) if name == self.method else attr
+
+
+def counted(fn: Callable[..., Any], name: str, calls: Counter[str]) -> Callable[..., Any]:
+    def call(*args: Any, **kwargs: Any) -> Any:
+        calls[name] += 1
+        return fn(*args, **kwargs)
+
+    return call
+
+
+# What verifies a wrong tag, by receive path: the Python codec alone; the C Receiver (a typed
+# subscriber); C open (a bus with raw handlers, e.g. a recorder, skips the Receiver). Fragments
+# always go to the Python reassembler. Each verifies once, in C or in Python, never both.
+VERIFIED_ONCE = {
+    "python": Counter(verify=1, verify_fragment=1),
+    "c-receiver": Counter(accept=1, verify_fragment=1),
+    "c-open": Counter(open=1, verify_fragment=1),
+}
+
+
+@pytest.mark.parametrize("receive_path", VERIFIED_ONCE)
+def test_a_datagram_with_a_wrong_tag_is_verified_once(receive_path: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 25 item 6: a bad-MAC datagram was verified three times (the C Receiver, C open, then
+    Python). Now each path computes its tag once, then counts and drops it."""
+    if receive_path != "python" and native is None:
+        pytest.skip(f"the bus runs {fastpath.describe()}")
+    if receive_path == "python":
+        monkeypatch.setattr(codec, "native", None)
+        monkeypatch.setattr(bus_module, "native", None)
+    calls: Counter[str] = Counter()
+    for name in ("verify", "verify_fragment"):
+        monkeypatch.setattr(Keyring, name, counted(getattr(Keyring, name), name, calls))
+    url = f"mem://fragment-attacks-verify-{next(_hubs)}"
+    victim = Bus(open_transport(url), VICTIM, keyring(), ManualClock())
+    victim.subscribe(channels.WHEEL_SPEED, lambda msg, env: pytest.fail("a forgery was delivered"))
+    if receive_path == "c-open":
+        victim.subscribe_raw(lambda opened, data, recv_ns: pytest.fail("a forgery reached a raw handler"))
+    if receive_path != "python":
+        monkeypatch.setattr(codec, "native", Counting(native, "open", calls))
+        victim._receiver = Counting(victim._receiver, "accept", calls)
+    assert (victim._receiver is None) == (receive_path == "python")
+    wrong = Codec(Keyring.generate())
+    forged = wrong.encode(channels.WHEEL_SPEED.encode(), m.WheelSpeed(3.0, 1.0), PUBLISHER, 1, 0, 0)
+    forged_fragment = fragment(random.randbytes(3000), PUBLISHER, 7, keyring=Keyring.generate())[0]
+    wire = open_transport(url)
+    wire.send(channels.WHEEL_SPEED, forged)
+    wire.send(channels.WHEEL_SPEED, forged_fragment)
+    assert victim.poll() == 2
+    assert calls == VERIFIED_ONCE[receive_path]
+    assert victim.rejects == Counter({(PUBLISHER, "bad_mac"): 2})
     victim.close()
     wire.close()
 
