@@ -12,11 +12,11 @@ from rascal.clock import SharedClock
 
 OUTSTANDING_REQUESTS = 32
 ENCODE_SMOOTHING = 8  # the master's mean reply encoding time: an exponential mean over ~8 replies
-# Once the estimate has settled, one exchange per this long keeps it (the fit spans 64 samples and
-# holdover starts after 3 s without one: six replies in a row must be lost). Every node hears
-# every exchange, so at the callers' 10 Hz sixteen nodes put 320 datagrams/s on the bus, each
-# received sixteen times: a third of an idle module's CPU (py-spy on the health module).
-SETTLED_REQUEST_PERIOD_NS = 500_000_000
+# Once the estimate has settled, one exchange per this long keeps it: the fit models the clock's
+# drift, so its error grows by about 0.1 ppm of the gap (NTP clients poll every 64 s). Faster is
+# costly, because every node hears every exchange and a multicast send delivers to each of them:
+# at 0.5 s, time sync was half of the recorder's and an idle module's CPU (py-spy).
+SETTLED_REQUEST_PERIOD_NS = 2_000_000_000
 SETTLED_ERROR_BOUND_NS = 1_000_000  # a jittery link keeps asking at the callers' rate until this good
 # However fast a caller calls (a tool that asks whenever its poll returns is woken by its own
 # request): every request costs the master a signed reply, and a flood of them delays each reply

@@ -43,7 +43,7 @@ class TimeSyncConfig:
 
     window_samples: int = 64
     min_samples: int = 4
-    holdover_after_ns: int = 3_000_000_000
+    holdover_after_ns: int = 5_000_000_000  # two settled exchanges (2 s apart) lost, and slack
     max_delay_ns: int = 500_000_000
     # Timestamping noise can make a near-zero round trip slightly negative.
     negative_delay_tolerance_ns: int = 10_000

@@ -28,7 +28,7 @@ from protocol.codec import Opened
 from protocol.errors import Reason
 from rascal.recording import RecordingWriter
 from rascal.spoof import DEFAULT_SOURCE_ID
-from rascal.timesync import SyncState
+from rascal.timesync import SyncState, TimeSyncConfig
 from tests.conftest import ROOT, Processes
 from tests.integration.stack import NS, drive, max_gap_s, rock, scenario, write_deployment
 
@@ -44,7 +44,7 @@ SPOOF_RATE_HZ = 1000
 SPOOF_COUNT = 5000  # 5 s at the rate, per spoofer
 REPLAY_COUNT = 2000
 STEREO_MAX_GAP_S = 0.5
-HOLDOVER_AFTER_S = 3.0  # rascal.timesync's default holdover_after_ns
+HOLDOVER_AFTER_S = TimeSyncConfig().holdover_after_ns / 1e9
 CONTROL_SOURCE_ID = Control.default_source_id
 
 
