@@ -63,9 +63,14 @@ class HazardField:
         self.footprint_cost = cv2.boxFilter(
             capped, ddepth=-1, ksize=(side, side), normalize=True, borderType=cv2.BORDER_CONSTANT
         )
-        caution = self.lethal | (hazard >= caution_probability)
-        self.any_caution = bool(caution.any())
-        self._caution_m = _distance_to(np.pad(caution, 1, constant_values=False), res)
+        # Caution cells are the lethal ones plus the likely hazards; where there are no others
+        # (most of a drive), their distance field is the clearance field: one transform, not two.
+        likely = hazard >= caution_probability
+        self.any_caution = self.any_lethal or bool(likely.any())
+        if (likely & ~self.lethal).any():
+            self._caution_m = _distance_to(np.pad(self.lethal | likely, 1, constant_values=False), res)
+        else:
+            self._caution_m = self.clearance_m
 
     def clearance_bound(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
         """A lower bound on each point's distance to the nearest lethal cell centre.
