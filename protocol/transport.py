@@ -47,6 +47,8 @@ def default_url() -> str:
 class Transport(ABC):
     """Moves whole datagrams. No parsing, no clock: that is the bus's job."""
 
+    can_send = True  # False for a receive-only end (send raises)
+
     @abstractmethod
     def send(self, channel: str, datagram: bytes) -> None: ...
 
@@ -277,6 +279,8 @@ class MemTransport(Transport):
 class ZmqSubscriberTransport(Transport):
     """Receive-only end of the ZeroMQ bridge: whole signed messages over TCP, one per frame."""
 
+    can_send = False
+
     def __init__(self, endpoint: str) -> None:
         import zmq  # imported here: only bridge users pay for it
 
@@ -351,7 +355,11 @@ def _open(url: str, parts: SplitResult, query: dict[str, str]) -> Transport:
         return ZmqSubscriberTransport(f"tcp://{parts.netloc}")
     if scheme != "udpm":
         raise UrlError(f"{url}: unknown scheme {scheme!r}; use udpm://, mem:// or zmq://")
-    return UdpMulticastTransport(_udp_config(url, parts.hostname, parts.port, query))
+    try:
+        port = parts.port
+    except ValueError as exc:  # urllib's "Port out of range 0-65535", naming neither URL nor port
+        raise UrlError(f"{url}: {exc}") from None
+    return UdpMulticastTransport(_udp_config(url, parts.hostname, port, query))
 
 
 def _udp_config(url: str, host: str | None, port: int | None, query: dict[str, str]) -> UdpConfig:

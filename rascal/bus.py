@@ -80,12 +80,17 @@ class ChannelStats:
     last_source: int = -1
 
     def rate_hz(self, now_ns: int, window_ns: int = 2_000_000_000) -> float:
-        """Messages per second over the last ``window_ns`` (0 when silent that long)."""
+        """Messages per second over the last ``window_ns``: one over the mean interval between
+        them (unbiased for a steady stream, as `ros2 topic hz` measures), falling once the
+        channel has been silent for over two of its intervals (0 when silent that long)."""
         recent = [t for t in self.arrivals_ns if t >= now_ns - window_ns]
         if len(recent) < 2:
             return 0.0
-        span = max(now_ns - recent[0], recent[-1] - recent[0])
-        return (len(recent) - 1) * 1e9 / span if span > 0 else 0.0
+        intervals = len(recent) - 1
+        span = recent[-1] - recent[0]
+        if now_ns - recent[-1] > 2 * span / intervals:
+            span = now_ns - recent[0]
+        return intervals * 1e9 / span if span > 0 else 0.0
 
     def loss_fraction(self) -> float:
         expected = self.messages + self.lost

@@ -6,8 +6,10 @@ their output can be grepped and tested. Every tool stops by itself after ``--dur
 
 from __future__ import annotations
 
+import difflib
 import itertools
 import json
+import math
 import random
 import statistics
 import sys
@@ -17,16 +19,17 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import msgpack
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
 from protocol import channels
 from protocol.auth import Keyring
-from protocol.codec import Opened, decode_body
+from protocol.codec import Opened, decode_body, unpack_body
 from protocol.errors import ProtocolError
 from protocol.messages import ModuleStatus
-from protocol.schema import info_for_id, registered
+from protocol.schema import info_for_class, info_for_id, registered
 from rascal.bus import Bus, ChannelStats
 from rascal.clock import SharedClock
 from rascal.timeclient import TimeClient
@@ -48,11 +51,12 @@ def tool_bus(
 
 
 def run_for(bus: Bus, time_client: TimeClient, duration_s: float, every_s: float, tick: Callable[[], None]) -> None:
-    """Poll the bus for ``duration_s``, asking the time master every 100 ms and calling
-    ``tick`` every ``every_s``."""
+    """Poll the bus for ``duration_s``, asking the time master every 100 ms (unless the bus is
+    receive-only: the far end of a bridge hears, in its own time) and calling ``tick`` every
+    ``every_s``."""
     start = time.monotonic()
     next_tick = start + every_s
-    next_sync = start
+    next_sync = start if bus.transport.can_send else math.inf
     while (now := time.monotonic()) < start + duration_s:
         if now >= next_sync:
             time_client.request()
@@ -61,6 +65,15 @@ def run_for(bus: Bus, time_client: TimeClient, duration_s: float, every_s: float
             tick()
             next_tick += every_s
         bus.poll(min(next_tick, next_sync, start + duration_s) - time.monotonic())
+
+
+def declared_channel(channel: str) -> str:
+    """``channel`` if protocol.channels declares it; else ValueError naming the nearest ones."""
+    if channel in channels.CHANNEL_TYPES:
+        return channel
+    near = difflib.get_close_matches(channel.upper(), channels.CHANNEL_TYPES, n=3, cutoff=0.5)
+    hint = f"did you mean {', '.join(near)}?" if near else f"declared: {', '.join(sorted(channels.CHANNEL_TYPES))}"
+    raise ValueError(f"unknown channel {channel!r}; {hint}")
 
 
 def to_jsonable(value: Any) -> Any:
@@ -164,6 +177,7 @@ def channel_table(bus: Bus, now_ns: int) -> Table:
 
 def bus_echo(url: str | None, channel: str, duration_s: float, count: int | None, console: Console) -> int:
     """Print each message on ``channel`` as one JSON line; return how many were printed."""
+    declared_channel(channel)
     bus, time_client = tool_bus(url)
     printed = 0
 
@@ -199,6 +213,7 @@ def bus_hz(
     url: str | None, channel: str, duration_s: float, window_s: float, console: Console
 ) -> list[dict[str, float]]:
     """Every ``window_s``: rate, interval statistics, loss and latency of ``channel``."""
+    declared_channel(channel)
     bus, time_client = tool_bus(url)
     bus.subscribe_raw(lambda *_: None)
     rows: list[dict[str, float]] = []
@@ -242,7 +257,11 @@ def bus_pub(url: str | None, channel: str, body_json: str, type_name: str | None
         msg_type = by_name[type_name]
     if msg_type is None:
         raise ValueError(f"channel {channel!r} is not declared; pass --type")
-    msg = from_jsonable(msg_type, json.loads(body_json))
+    try:
+        body = json.loads(body_json)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"the message is not JSON: {exc}") from None
+    msg = checked(msg_type, from_jsonable(msg_type, body))
     bus, time_client = tool_bus(url)
     sent = 0
 
@@ -258,6 +277,15 @@ def bus_pub(url: str | None, channel: str, body_json: str, type_name: str | None
         run_for(bus, time_client, (count - 1) / rate_hz + 0.05, 1.0 / rate_hz, send)
     bus.close()
     return sent
+
+
+def checked(msg_type: type, msg: Any) -> Any:
+    """``msg`` as every receiver will decode it; ValueError for what they would reject (a
+    string where a number belongs, a missing field...), before anything is sent."""
+    try:
+        return info_for_class(msg_type).decode(unpack_body(msgpack.packb(msg, use_bin_type=True)))
+    except ProtocolError as exc:
+        raise ValueError(f"not a valid {msg_type.__name__}: {exc}") from None
 
 
 # -- time status ------------------------------------------------------------------------------
@@ -279,9 +307,9 @@ def time_status(url: str | None, duration_s: float, console: Console) -> dict[st
     table.add_row(
         "this tool",
         own.state.name,
-        f"{own.offset_ns / 1e3:.1f}",
-        f"{own.error_bound_ns / 1e3:.1f}",
-        f"{own.drift_ppm:.2f}",
+        f"{own.offset_ns / 1e3:.1f}" if own.state is not SyncState.UNSYNCED else "-",
+        f"{own.error_bound_ns / 1e3:.1f}" if own.state is not SyncState.UNSYNCED else "-",
+        f"{own.drift_ppm:.2f}" if own.state is not SyncState.UNSYNCED else "-",
     )
     for name, status in sorted(nodes.items()):
         state = SyncState(status.clock_state).name if status.clock_state in iter(SyncState) else str(status.clock_state)

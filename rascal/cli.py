@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from collections.abc import Callable
+from importlib.metadata import version
 from pathlib import Path
 
 from brain.rddf_cli import add_rddf_commands
@@ -46,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rascal", description="RASCAL-style autonomy stack: bus, modules, tools")
+    parser.add_argument("--version", action="version", version=f"rascal {version('rascal')}")
     parser.add_argument("--bus", help="bus URL (default: $RASCAL_BUS_URL or loopback multicast)")
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -143,37 +146,43 @@ def _keygen(args: argparse.Namespace) -> int:
     return 0
 
 
+def _one_line_errors(args: argparse.Namespace, tool: Callable[[], object]) -> int:
+    """Run a bus or time tool: exit 0, or for bad input (bus URL, key file, channel, JSON) one
+    line and exit 2."""
+    try:
+        tool()
+        return 0
+    except (ValueError, OSError) as exc:  # UrlError and KeyFileError are ValueErrors
+        print(f"rascal {args.command} {args.tool}: {exc}", file=sys.stderr)
+        return 2
+
+
 def _bus_list(args: argparse.Namespace) -> int:
     from rascal.bustools import bus_list
 
-    bus_list(args.bus, args.duration, make_console())
-    return 0
+    return _one_line_errors(args, lambda: bus_list(args.bus, args.duration, make_console()))
 
 
 def _bus_echo(args: argparse.Namespace) -> int:
     from rascal.bustools import bus_echo
 
-    bus_echo(args.bus, args.channel, args.duration, args.count, make_console())
-    return 0
+    return _one_line_errors(args, lambda: bus_echo(args.bus, args.channel, args.duration, args.count, make_console()))
 
 
 def _bus_hz(args: argparse.Namespace) -> int:
     from rascal.bustools import bus_hz
 
-    bus_hz(args.bus, args.channel, args.duration, args.window, make_console())
-    return 0
+    return _one_line_errors(args, lambda: bus_hz(args.bus, args.channel, args.duration, args.window, make_console()))
 
 
 def _bus_pub(args: argparse.Namespace) -> int:
     from rascal.bustools import bus_pub
 
-    try:
+    def publish() -> None:
         sent = bus_pub(args.bus, args.channel, args.json, args.type, args.rate, args.count)
-    except (ValueError, TypeError) as exc:
-        print(f"rascal bus pub: {exc}", file=sys.stderr)
-        return 2
-    print(f"published {sent} on {args.channel}")
-    return 0
+        print(f"published {sent} on {args.channel}")
+
+    return _one_line_errors(args, publish)
 
 
 def _operator_order(args: argparse.Namespace) -> int:
@@ -210,8 +219,7 @@ def _bus_bridge(args: argparse.Namespace) -> int:
 def _time_status(args: argparse.Namespace) -> int:
     from rascal.bustools import time_status
 
-    time_status(args.bus, args.duration, make_console())
-    return 0
+    return _one_line_errors(args, lambda: time_status(args.bus, args.duration, make_console()))
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, is_fragment
 from protocol.replay import ReplayLimits
 from protocol.schema import info_for_class
 from protocol.transport import MemTransport, open_transport
-from rascal.bus import Bus
+from rascal.bus import Bus, ChannelStats
 from rascal.clock import ManualClock
 from rascal.rtdb import Validity
 from tests.protocol.wire_samples import BIG_SAMPLES, CHANNEL_OF, SAMPLES, T0_NS, WRONG_KEY, keyring
@@ -283,3 +283,21 @@ def test_latest_keeps_the_newest_measurement_despite_reordering(net: Net) -> Non
     sub.poll()
     assert entry.fresh(net.clock.now_ns()) == newer
     assert entry.updates == 2
+
+
+@pytest.mark.parametrize("true_hz", [10.0, 20.0, 100.0])
+def test_a_steady_channels_rate_reads_within_1_percent(true_hz: float) -> None:
+    stats = ChannelStats()
+    period_ns = round(1e9 / true_hz)
+    stats.arrivals_ns.extend(range(0, 5_000_000_000, period_ns))
+    # Read just before the next message: the wait since the last one must not count against it.
+    now_ns = stats.arrivals_ns[-1] + period_ns - 1
+    assert stats.rate_hz(now_ns, 1_000_000_000) == pytest.approx(true_hz, rel=0.01)
+
+
+def test_a_channel_that_stops_reads_ever_lower_then_zero() -> None:
+    stats = ChannelStats()
+    stats.arrivals_ns.extend(range(0, 2_000_000_000, 50_000_000))  # 20 Hz for 2 s
+    last = stats.arrivals_ns[-1]
+    readings = [stats.rate_hz(last + gap_ns, 2_000_000_000) for gap_ns in (200_000_000, 1_000_000_000, 3_000_000_000)]
+    assert readings[0] < 20.0 and readings == sorted(readings, reverse=True) and readings[-1] == 0.0
