@@ -5,8 +5,11 @@ ahead: a wall across the corridor) or stalled (the planner has a way, yet the ve
 path it cannot start along, a search that keeps ending at its own nose). Neither may go unsaid:
 a blocked corridor is reported within ``blocked_after_s`` of stopping, and a stall after
 ``stall_after_s`` starts a recovery (the planner forgets its path and plans afresh from the
-standing pose), repeated every ``stall_after_s`` while it lasts. Standing on the operator's
-order, or at the finish, is neither.
+standing pose), repeated every ``stall_after_s`` while it lasts. Where the brain has a way back
+(``can_back_up``), standing that long blocked, or still stalled after a re-plan, backs the
+vehicle up instead (then it plans afresh from there): at most BACKUPS_PER_PLACE times around one
+standing place, so a dead end cannot make it shuttle for ever. Standing on the operator's order,
+or at the finish, is neither.
 
 Sans-IO: feed ``update`` once a planning cycle; it returns the events to report.
 """
@@ -20,6 +23,8 @@ from protocol.messages import Severity
 
 STANDING_MPS = 0.1  # the issue's stall: below 0.1 m/s
 MOVING_M = 1.0  # driven this far from where it stood: moving again
+BACKUPS_PER_PLACE = 3
+PLACE_M = 6.0  # stands this close to where a back-up started are the same place (a back-up is 4 m)
 
 
 class Standing(enum.Enum):
@@ -27,6 +32,7 @@ class Standing(enum.Enum):
     STANDING = "standing"  # not yet long enough to say why
     BLOCKED = "blocked"
     STALLED = "stalled"
+    BACKING = "backing"  # backing up: the brain says when it is done
 
 
 @dataclass(frozen=True)
@@ -35,6 +41,7 @@ class StallEvent:
     code: str
     text: str
     recover: bool = False  # the brain should make the planner start afresh
+    back_up: bool = False  # ... after backing up
 
 
 class StallWatch:
@@ -51,12 +58,22 @@ class StallWatch:
         self._since_ns = 0  # when it stood still
         self._station_m = 0.0  # where it stood
         self._last_recovery_ns = 0
+        self._places: list[tuple[float, int]] = []  # (station, back-ups) of the places backed up from
 
     def update(
-        self, now_ns: int, speed_mps: float, station_m: float, way_ahead: bool, held_by_operator: bool
+        self,
+        now_ns: int,
+        speed_mps: float,
+        station_m: float,
+        way_ahead: bool,
+        held_by_operator: bool,
+        can_back_up: bool = False,
     ) -> list[StallEvent]:
-        """One cycle: the vehicle's speed and station, whether the planner has a path that goes
-        anywhere (``way_ahead``), and whether the operator holds it."""
+        """One cycle: the vehicle's speed (a magnitude: backing is moving) and station, whether the
+        planner has a path that goes anywhere (``way_ahead``), whether the operator holds it, and
+        whether the brain has a way back."""
+        if self.state is Standing.BACKING:
+            return []
         standing = speed_mps < STANDING_MPS and not held_by_operator and station_m < self.finish_m
         if self.state is Standing.MOVING:
             if standing:
@@ -69,9 +86,11 @@ class StallWatch:
             self.state = Standing.BLOCKED
             text = f"corridor blocked at s={station_m:.0f} m: nothing reachable ahead; standing for {stood_s:.0f} s"
             return [StallEvent(Severity.CRITICAL, "corridor_blocked", text)]
-        if way_ahead and stood_s >= self.stall_after_s:
-            if (now_ns - self._last_recovery_ns) / 1e9 < self.stall_after_s:
-                return []
+        if stood_s < self.stall_after_s or (now_ns - self._last_recovery_ns) / 1e9 < self.stall_after_s:
+            return []
+        if can_back_up and (not way_ahead or self.state is Standing.STALLED) and self._back_up_allowed(station_m):
+            return [self._back_up(now_ns, station_m, stood_s)]
+        if way_ahead:
             self.state, self._last_recovery_ns = Standing.STALLED, now_ns
             self.recoveries += 1
             text = (
@@ -80,6 +99,34 @@ class StallWatch:
             )
             return [StallEvent(Severity.WARNING, "stalled", text, recover=True)]
         return []
+
+    def backed_up(self) -> None:
+        """The back-up is over: what comes next is judged afresh."""
+        self.state = Standing.MOVING
+
+    def _place(self, station_m: float) -> int | None:
+        """The index of the place backed up from that ``station_m`` is part of, if any."""
+        return next((k for k, (place, _count) in enumerate(self._places) if abs(station_m - place) <= PLACE_M), None)
+
+    def _back_up_allowed(self, station_m: float) -> bool:
+        index = self._place(station_m)
+        return index is None or self._places[index][1] < BACKUPS_PER_PLACE
+
+    def _back_up(self, now_ns: int, station_m: float, stood_s: float) -> StallEvent:
+        index = self._place(station_m)
+        if index is None:
+            self._places.append((station_m, 0))
+            index = len(self._places) - 1
+        place, count = self._places[index]
+        count += 1
+        self._places[index] = (place, count)
+        was, self.state, self._last_recovery_ns = self.state, Standing.BACKING, now_ns
+        self.recoveries += 1
+        text = (
+            f"standing for {stood_s:.0f} s at s={station_m:.0f} m ({was.value}): backing up, "
+            f"{count} of {BACKUPS_PER_PLACE} here, then planning afresh"
+        )
+        return StallEvent(Severity.WARNING, "backing_up", text, recover=True, back_up=True)
 
     def _moving_again(self, now_ns: int, station_m: float) -> list[StallEvent]:
         was, stood_s = self.state, (now_ns - self._since_ns) / 1e9

@@ -268,16 +268,19 @@ class Path(NamedTuple):
     # descriptors of each live obstacle sensor. The first command after the path, minus this, is
     # the measurement-to-actuator latency. 0: unknown.
     t_input_ns: int = 0
+    reverse: bool = False  # drive it backwards: points and speeds in the order of travel, speeds as magnitudes
 
 
 @message(type_id=31)
 class ActuatorCommand(NamedTuple):
-    """Throttle and brake as fractions 0..1; steering angle of the front wheels, left positive."""
+    """Throttle and brake as fractions 0..1; steering angle of the front wheels, left positive.
+    ``reverse`` selects the reverse gear; the vehicle changes gear only at a standstill."""
 
     throttle: float
     brake: float
     steering_rad: float
     stop_reason: str = ""
+    reverse: bool = False
 
 
 @message(type_id=32)

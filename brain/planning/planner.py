@@ -183,6 +183,10 @@ class Planner:
             return cycle.stop()
         return cycle.run(s_end)
 
+    def new_path_id(self) -> int:
+        """An id no path of this planner has had or will have, for a path made beside it (a back-up)."""
+        return self._new_id()
+
     def _new_id(self) -> int:
         path_id = self._next_id
         self._next_id += 1

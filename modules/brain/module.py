@@ -4,11 +4,14 @@ and plans inside the RDDF corridor (brain/fusion, brain/health, brain/planning).
 Each planning cycle (``plan_rate_hz``, 10 by default) reads the newest vehicle state, the cost
 map and the drive mode's speed cap, and publishes a Path stamped with the state's measurement
 time. A change of drive mode (lidars silent, blind, navigation lost...) is a HealthEvent the
-moment a cycle sees it. A map snapshot goes out on MAP_SNAPSHOT once a second.
+moment a cycle sees it. A map snapshot goes out on MAP_SNAPSHOT once a second. Standing still
+is watched (brain/stall.py): a blocked corridor is reported, a stall re-planned, and where either
+lasts, the vehicle backs up along the way it came (brain/planning/backup.py) and plans afresh.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -17,8 +20,10 @@ import cv2
 import numpy as np
 
 from brain.course_config import DEFAULT_COURSE, load_course
+from brain.fusion.cost import CostMap
 from brain.fusion.fusion import HazardFusion
 from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
+from brain.planning.backup import BackUp, BackUpSettings, FloatArray, Trail, back_up
 from brain.planning.planner import PlanMode, Planner, PlanResult
 from brain.stall import STANDING_MPS, StallWatch, Standing
 from protocol import channels
@@ -27,6 +32,8 @@ from protocol.messages import (
     GroundSweep,
     LaneBorders,
     ObstacleList,
+    Path,
+    PathPoint,
     Sensor,
     Severity,
     StopCommand,
@@ -50,6 +57,7 @@ CYCLES_KEPT = 3000  # planning cycles the heartbeat's p99 spans: 5 min at 10 Hz
 NO_CAP_MPS = 100.0  # "no cap" for the planner, which wants a finite limit (the course's apply anyway)
 FINISH_M = 5.0  # standing this close to the course's end is the finish (the referee's distance)
 BLOCKED_SEARCH_PERIOD_S = 1.0  # standing at a blocked corridor: how often to look for a way again
+BACKED_UP_M = 1.0  # standing this close to a back-up's end: it is over (control stops ~0.5 m short)
 MODE_SEVERITY = {
     DriveMode.NORMAL: Severity.INFO,
     DriveMode.LIDAR_DEGRADED: Severity.WARNING,
@@ -76,6 +84,8 @@ class BrainConfig:
     navigation_max_age_s: float = setting(0.2, "vehicle state this old is lost")
     blocked_after_s: float = setting(3.0, "standing this long with nothing reachable ahead: corridor_blocked")
     stall_after_s: float = setting(5.0, "standing this long with a way ahead: stalled, plan afresh (and again)")
+    back_up_m: float = setting(4.0, "a stall or blockage that lasts backs the vehicle up this far along its trail")
+    back_up_speed_mps: float = setting(1.0, "backing-up speed")
 
 
 class Brain(Module):
@@ -97,6 +107,8 @@ class Brain(Module):
         self.last_search_ns = 0  # monotonic time the planner last ran
         self.published = 0
         self.refused = 0
+        self.trail = Trail()  # where the vehicle came from: known drivable
+        self.backing: Backing | None = None
 
     def on_start(self) -> None:
         config = self.config
@@ -111,6 +123,8 @@ class Brain(Module):
         self.planner = Planner.for_course(course)
         finish_m = course.interpolate().length_m - FINISH_M
         self.stall = StallWatch(finish_m, config.blocked_after_s, config.stall_after_s)
+        self.corridor = course.corridor
+        self.back_up_settings = BackUpSettings(config.back_up_m, config.back_up_speed_mps)
         # Only to tell an operator's hold from a stall. The operator's orders, not control's 50 Hz
         # commands: those are signed, and verifying each would cost more than the stall watch.
         self.held_by_operator = False
@@ -193,9 +207,15 @@ class Brain(Module):
         if state is None or cost_map is None:
             return  # nothing to plan from: control brakes on the missing path
         cap = min(assessment.speed_cap_mps, NO_CAP_MPS)
-        # The filter's speed wanders a few mm/s below zero at rest; the vehicle never reverses.
+        # The planner plans forwards: to it, rolling backwards is standing (and the filter's speed
+        # wanders a few mm/s below zero at rest). Backing up is moving, though, to the stall watch.
         pose = state._replace(speed_mps=max(0.0, state.speed_mps))
-        resting = self.resting_at_a_blockage(pose.speed_mps)
+        if self.backing is not None and (cap <= 0.0 or self.backing.over(state, self.now_ns())):
+            self.end_backing()  # done, or the drive mode no longer lets it drive
+        if state.speed_mps > STANDING_MPS:
+            self.trail.add(state.east_m, state.north_m)
+        backing = self.backing is not None
+        resting = backing or self.resting_at_a_blockage(pose.speed_mps)
         if not resting:
             try:
                 self.last = self.planner.plan(pose, cost_map.window, cost_map.hazard_probability, cost_map.cost, cap)
@@ -206,9 +226,10 @@ class Brain(Module):
                 return
             self.last_search_ns = time.monotonic_ns()
         assert self.last is not None
-        self.watch_standing(pose.speed_mps, self.last)
+        if not backing:
+            self.watch_standing(abs(state.speed_mps), self.last, state, cost_map if cap > 0.0 else None)
         oldest = self.health.oldest_live_ns(OBSTACLE_SENSORS, self.now_ns())
-        path = self.last.path._replace(t_input_ns=oldest or 0)
+        path = (self.backing.path if self.backing is not None else self.last.path)._replace(t_input_ns=oldest or 0)
         self.bus.publish(channels.PATH, path, t_meas_ns=self.state_t_ns)
         self.published += 1
         if not resting:
@@ -226,15 +247,61 @@ class Brain(Module):
             and time.monotonic_ns() - self.last_search_ns < BLOCKED_SEARCH_PERIOD_S * 1e9
         )
 
-    def watch_standing(self, speed_mps: float, plan: PlanResult) -> None:
-        """Report a blocked corridor or a stall; on a stall, plan afresh from where it stands."""
+    def watch_standing(self, speed_mps: float, plan: PlanResult, state: VehicleState, cost_map: CostMap | None) -> None:
+        """Report a blocked corridor or a stall; on a stall, plan afresh from where it stands, or
+        back up first when that did not help (only with a map, and never while the drive mode
+        forbids driving: ``cost_map`` None)."""
         # A search that ends short of its goal leads only to the reachable cells nearest it.
         searched_through = plan.mode is PlanMode.SEARCH and plan.reached_goal
         way_ahead = plan.mode in (PlanMode.KEEP, PlanMode.REPLAN) or searched_through
-        for event in self.stall.update(self.now_ns(), speed_mps, plan.station_m, way_ahead, self.held_by_operator):
+        way_back = self.way_back(state, cost_map) if speed_mps < STANDING_MPS and cost_map is not None else None
+        now = self.now_ns()
+        events = self.stall.update(
+            now, speed_mps, plan.station_m, way_ahead, self.held_by_operator, way_back is not None
+        )
+        for event in events:
             self.report(event.severity, event.code, event.text)
-            if event.recover:
+            if event.back_up and way_back is not None:
+                self.start_backing(way_back, now)
+            elif event.recover:
                 self.planner.reset()
+
+    def way_back(self, state: VehicleState, cost_map: CostMap) -> BackUp | None:
+        """Back along the trail, inside the corridor; beyond the trail, clear on the map too."""
+        settings = self.back_up_settings
+        window, hazard = cost_map.window, np.asarray(cost_map.hazard_probability)
+        caution = self.planner.config.caution_probability
+        offsets = np.arange(-settings.clearance_m, settings.clearance_m + 1e-9, window.resolution_m)
+
+        def inside(east: FloatArray, north: FloatArray) -> np.ndarray:
+            return np.asarray(self.corridor.distance_to_edge(east, north)) >= settings.clearance_m
+
+        def free(east: FloatArray, north: FloatArray) -> np.ndarray:
+            # Every known cell in a square of the clearance around each point is below caution.
+            square_east, square_north = np.broadcast_arrays(
+                east[:, None, None] + offsets[None, None, :], north[:, None, None] + offsets[None, :, None]
+            )
+            rows, cols = window.cell_of(square_east, square_north)
+            known = window.inside(rows, cols)
+            risky = np.zeros(rows.shape, dtype=bool)
+            risky[known] = hazard[rows[known], cols[known]] >= caution
+            return ~risky.any(axis=(1, 2))
+
+        return back_up(self.trail, state.east_m, state.north_m, state.yaw_rad, inside, free, settings)
+
+    def start_backing(self, way: BackUp, now_ns: int) -> None:
+        speed = self.back_up_settings.speed_mps
+        points = tuple(PathPoint(e, n, v) for (e, n), v in zip(way.points, way.speeds(speed), strict=True))
+        path = Path(self.planner.new_path_id(), points, slow_mode=True, reverse=True)
+        # Time enough to change gear twice and drive it at half the speed.
+        deadline_ns = now_ns + int((10.0 + 2.0 * way.length_m / speed) * 1e9)
+        self.backing = Backing(path, deadline_ns)
+        self.trail.drop_newest(way.trail_used)
+
+    def end_backing(self) -> None:
+        self.backing = None
+        self.stall.backed_up()
+        self.planner.reset()
 
     def snapshot(self) -> None:
         if self.fusion.window is not None:
@@ -254,3 +321,16 @@ class Brain(Module):
             f"(p99 {np.percentile(self.cycles_ms, 99):.1f}); "
             f"fused {stats.messages} msgs, refused no-pose {stats.no_pose}"
         )
+
+
+@dataclass(frozen=True)
+class Backing:
+    """A back-up under way: its path, sent each cycle until the vehicle stands at its end (or time runs out)."""
+
+    path: Path
+    deadline_ns: int
+
+    def over(self, state: VehicleState, now_ns: int) -> bool:
+        end = self.path.points[-1]
+        arrived = math.hypot(state.east_m - end.east_m, state.north_m - end.north_m) < BACKED_UP_M
+        return (arrived and abs(state.speed_mps) < STANDING_MPS) or now_ns > self.deadline_ns

@@ -3,22 +3,26 @@
 It joins RASCAL's three parts (II.C): the path interface (``path_tracking``), heading control
 (``steering``: Stanley/Hoffmann or RASCAL's PD) and speed control (``speed``: PI), and applies
 the steering limits. Deciding *whether* to drive (stale inputs, pause, e-stop) is the process's
-job; it calls :meth:`VehicleController.brake` instead of :meth:`drive` then.
+job; it calls :meth:`VehicleController.brake` instead of :meth:`drive` then. Given a corridor
+guard (``corridor_guard``), driving forwards slows, then stops, rather than cut out of the corridor.
 """
 
 from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+from modules.control.corridor_guard import CorridorGuard, EdgeVerdict
 from modules.control.limits import DEFAULT_WHEELBASE_M, SteeringLimits
 from modules.control.path_tracking import PathTracker, Projection, TrackedPath, wrap_angle
 from modules.control.speed import PiSpeedController, SpeedGains, split_effort
 from modules.control.steering import PdGains, PdHeadingController, StanleyGains, heading_gain, stanley_steering
 
 LAWS = ("stanley", "pd")
+NO_GUARD = EdgeVerdict(math.inf, math.inf, math.inf)
 
 
 class Mode(enum.Enum):
@@ -29,6 +33,7 @@ class Mode(enum.Enum):
     FAILSAFE = "failsafe"
     PAUSE = "pause"
     ESTOP = "estop"
+    CORRIDOR = "corridor"  # on this steering the footprint would cross the corridor's edge
 
 
 class Pose(NamedTuple):
@@ -51,6 +56,16 @@ class Output(NamedTuple):
     heading_error_rad: float
     target_speed_mps: float
     speed_error_mps: float  # target minus actual
+    reverse: bool = False  # the reverse gear (see reverse.py)
+
+
+def require_finite(settings: object, names: Iterable[str], *, positive: bool) -> None:
+    """ValueError naming the first of ``names`` that is not finite and positive (or, with
+    ``positive=False``, not finite and at least 0)."""
+    for name in names:
+        value = getattr(settings, name)
+        if not (math.isfinite(value) and (value > 0.0 if positive else value >= 0.0)):
+            raise ValueError(f"{name} must be finite and {'positive' if positive else 'not negative'}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -89,18 +104,14 @@ class ControllerSettings:
             "saturated_share",
             "saturated_lateral_accel_mps2",
         )
-        for name in positive:
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
-                raise ValueError(f"{name} must be finite and positive, got {getattr(self, name)!r}")
+        require_finite(self, positive, positive=True)
         not_negative = (
             "speed_preview_time_s",
             "slow_mode_speed_mps",
             "window_back_m",
             "curvature_window_m",
         )
-        for name in not_negative:
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
-                raise ValueError(f"{name} must be finite and not negative, got {getattr(self, name)!r}")
+        require_finite(self, not_negative, positive=False)
 
 
 class VehicleController:
@@ -117,6 +128,8 @@ class VehicleController:
         self.slow_mode = False
         self._idle_s = 0.0  # time since the last drive step, for the tracker's search window
         self._last_speed_mps = 0.0
+        self.guard: CorridorGuard | None = None  # the process sets one when it knows the course
+        self.edge: EdgeVerdict | None = None  # the guard's last verdict
 
     def set_path(self, path: TrackedPath, slow_mode: bool = False) -> None:
         """Follow a new path (raises PathError through TrackedPath if it is unusable)."""
@@ -169,11 +182,15 @@ class VehicleController:
         self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
 
         target_speed = self._target_speed(where, speed)
+        edge = self._check_edge(pose, speed, target_speed)
         if where.beyond_end_m > 0.0:
             out = self._hold(speed, "end of path", Mode.END)
         elif target_speed < s.stop_speed_mps and speed < s.stop_speed_mps:
             out = self._hold(speed, "path asks to stop", Mode.HOLD)
+        elif edge.brake:
+            out = self._hold(speed, f"corridor edge {edge.crossing_m:.1f} m ahead", Mode.CORRIDOR)
         else:
+            target_speed = min(target_speed, edge.cap_mps)
             effort = self.speed.update(target_speed, speed, dt_s)
             throttle, brake = split_effort(effort, s.speed.deadband)
             out = Output(throttle, brake, self.steering_rad, "", Mode.DRIVE, 0.0, 0.0, 0.0, 0.0)
@@ -197,6 +214,15 @@ class VehicleController:
             tightest_curvature = math.tan(limit) / s.wheelbase_m
             target = min(target, math.sqrt(s.saturated_lateral_accel_mps2 / tightest_curvature))
         return target
+
+    def _check_edge(self, pose: Pose, speed_mps: float, target_speed_mps: float) -> EdgeVerdict:
+        """The guard's verdict on the steering just commanded (no cap, no brake without a guard)."""
+        if self.guard is None:
+            return NO_GUARD
+        self.edge = self.guard.assess(
+            pose.east_m, pose.north_m, pose.yaw_rad, speed_mps, self.steering_rad, target_speed_mps
+        )
+        return self.edge
 
     def _hold(self, speed_mps: float, reason: str, mode: Mode) -> Output:
         """Stopped (or stopping) on purpose: brake fully, keep steering along the path."""

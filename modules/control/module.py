@@ -4,7 +4,8 @@ Every tick it drives only if both inputs are fresh and usable and the operator h
 or e-stopped the vehicle; otherwise it brakes fully with the steering held, and says why in
 ``stop_reason``. Entering and leaving that fail-safe are reported once each as HealthEvents.
 Stop commands act inside the subscription handler: the braking command leaves at once, not at
-the next tick.
+the next tick. Given the course, a corridor guard slows, then stops, the vehicle rather than let
+its steering take it out of the corridor; each such stop is one ``corridor_edge`` HealthEvent.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path as FilePath
 
-from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose, VehicleController
+from brain.course_config import load_course
+from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose
+from modules.control.corridor_guard import CorridorGuard, GuardSettings
 from modules.control.limits import (
     DEFAULT_MAX_STEERING_RAD,
     DEFAULT_MAX_STEERING_RATE_RADPS,
@@ -22,6 +25,7 @@ from modules.control.limits import (
     SteeringLimits,
 )
 from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
+from modules.control.reverse import ReversingController
 from modules.control.speed import SpeedGains
 from modules.control.steering import PdGains, StanleyGains
 from modules.control.stop_latch import StopLatch, StopOrder
@@ -64,6 +68,16 @@ class ControlConfig:
     stop_file: str = setting(
         "", "where the operator's stop/pause outlives a restart (default: control.stop.json in the run/state dir)"
     )
+    course: str = setting("", "RDDF file whose corridor the guard keeps the vehicle in (empty: no corridor guard)")
+    origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
+    corridor_horizon_s: float = setting(
+        0.6, "corridor guard: the footprint is predicted this many seconds of travel ahead on the present steering"
+    )
+    corridor_min_reach_m: float = setting(0.5, "corridor guard: ... and at least this far (a standing vehicle)")
+    corridor_margin_m: float = setting(
+        0.3, "corridor guard: speed capped when the footprint would come this near the edge (or half as near as now)"
+    )
+    corridor_creep_mps: float = setting(0.5, "corridor guard: the lowest speed cap, short of braking")
 
     def __post_init__(self) -> None:
         if self.controller not in LAWS:
@@ -75,6 +89,7 @@ class ControlConfig:
             raise ConfigError(f"heading_smoothing_m must not be negative, got {self.heading_smoothing_m!r}")
         try:
             self.controller_settings()
+            self.guard_settings()
         except ValueError as exc:
             raise ConfigError(str(exc)) from exc
 
@@ -97,6 +112,11 @@ class ControlConfig:
             max_cross_track_m=self.max_cross_track_m,
         )
 
+    def guard_settings(self) -> GuardSettings:
+        return GuardSettings(
+            self.corridor_horizon_s, self.corridor_min_reach_m, self.corridor_margin_m, self.corridor_creep_mps
+        )
+
 
 class Control(Module):
     """Vehicle control: path interface, Stanley or PD steering, PI speed; fail-safe braking."""
@@ -108,9 +128,13 @@ class Control(Module):
     def on_start(self) -> None:
         config: ControlConfig = self.config
         self.dt_s = 1.0 / config.rate_hz
-        self.controller = VehicleController(config.controller_settings())
+        self.controller = ReversingController(config.controller_settings())
         self.state_in = self.input(channels.VEHICLE_STATE, config.state_max_age_s)
         self.path_in = self.input(channels.PATH, config.path_max_age_s)
+        if config.course:
+            corridor = load_course(config.course, config.origin).corridor
+            self.controller.guard = CorridorGuard(corridor, config.wheelbase_m, config.guard_settings())
+        self.at_edge = False  # stopped for the corridor's edge, until the guard sees its margin kept again
         self.latch = StopLatch(_stop_file(config.stop_file))
         order, problem = self.latch.load()
         self.stop_mode, self.stop_text = order.mode, order.reason
@@ -189,6 +213,7 @@ class Control(Module):
         out = self.controller.drive(pose, self.dt_s)
         # Being far off the path is a fail-safe too: the path no longer describes where we are.
         self._failsafe(out.stop_reason if out.mode is Mode.OFF_PATH else None)
+        self._watch_edge(out)
         self._publish(out)
 
     def _take_path(self, path: Path) -> str | None:
@@ -200,7 +225,7 @@ class Control(Module):
             self._path_msg = path
             try:
                 tracked = TrackedPath.from_points(path.points, self.config.heading_smoothing_m)
-                self.controller.set_path(tracked, bool(path.slow_mode))
+                self.controller.set_path(tracked, bool(path.slow_mode), bool(path.reverse))
                 self._path_error = None
             except PathError as exc:
                 self._path_error = f"PATH {path.path_id} unusable: {exc}"
@@ -217,11 +242,22 @@ class Control(Module):
             self.report(Severity.INFO, "control_resumed", f"driving again after: {self.failsafe_reason}")
         self.failsafe_reason = reason
 
+    def _watch_edge(self, out: Output) -> None:
+        """One corridor_edge event per stop at the edge: the next only once the guard has seen the
+        footprint keep its margin again (creeping along the edge, or backing off, is the same stop)."""
+        edge = self.controller.edge
+        if out.mode is Mode.CORRIDOR and not self.at_edge:
+            self.report(Severity.WARNING, "corridor_edge", f"braking: {out.stop_reason} on this steering")
+            self.at_edge = True
+        elif self.at_edge and edge is not None and edge.clear:
+            self.at_edge = False
+
     def _publish(self, out: Output) -> None:
         self.last = out
         self.commands += 1
         self.bus.publish(
-            channels.ACTUATOR_COMMAND, ActuatorCommand(out.throttle, out.brake, out.steering_rad, out.stop_reason)
+            channels.ACTUATOR_COMMAND,
+            ActuatorCommand(out.throttle, out.brake, out.steering_rad, out.stop_reason, out.reverse),
         )
 
     def on_stop(self) -> None:
@@ -237,6 +273,10 @@ class Control(Module):
         if not math.isnan(out.cross_track_m):
             text += f"cte {out.cross_track_m:+.2f} m, speed err {out.speed_error_mps:+.2f} m/s, "
         text += f"steer {out.steering_rad:+.3f} rad, sent {self.commands}"
+        edge = self.controller.edge
+        if edge is not None and out.mode in (Mode.DRIVE, Mode.CORRIDOR) and not out.reverse:
+            text += f", corridor edge {edge.clearance_m:+.2f} m"
+            text += "" if math.isinf(edge.cap_mps) else f" (cap {edge.cap_mps:.1f} m/s)"
         return text + (f"; {out.stop_reason}" if out.stop_reason else "")
 
 

@@ -3,7 +3,10 @@
 Lateral motion is kinematic (no tyre slip, no rollover); the steering angle follows the command
 through a rate limit. Longitudinal motion is force based: lagged throttle and brake, a drive force
 limited by traction at low speed and by power at high speed, aerodynamic drag and rolling
-resistance. The vehicle never reverses: braking and resistance stop it at zero speed.
+resistance. Speed is signed along the heading: in the reverse gear the throttle drives backwards,
+governed to a low top speed, and brake and resistance oppose motion either way, stopping the
+vehicle at zero without ever turning it round. The gear changes only at a standstill; asked for
+the other gear while moving, the vehicle brakes instead.
 
 ``step`` runs at the simulator's 100 Hz, so it uses plain floats and ``math`` (no numpy) and
 updates the state in place instead of allocating a new one.
@@ -33,6 +36,9 @@ class Command(Protocol):
     @property
     def steering_rad(self) -> float: ...
 
+    @property
+    def reverse(self) -> bool: ...
+
 
 @dataclass(frozen=True)
 class VehicleParams:
@@ -54,6 +60,8 @@ class VehicleParams:
     air_density_kgpm3: float = setting(1.225, "air density for the drag force")
     rolling_resistance: float = setting(0.03, "rolling resistance coefficient (Crr)")
     max_brake_decel_mps2: float = setting(6.0, "deceleration from full brake alone")
+    max_reverse_speed_mps: float = setting(2.5, "the reverse gear's governed top speed")
+    gear_change_speed_mps: float = setting(0.1, "the gear changes only below this speed")
     actuator_lag_s: float = setting(0.15, "time constant of the first-order lag of throttle and brake")
 
     def __post_init__(self) -> None:
@@ -72,7 +80,9 @@ class VehicleParams:
 @dataclass(slots=True)
 class VehicleState:
     """The simulated vehicle. Position is the rear axle centre in ENU; yaw is counter-clockwise
-    from east, kept within [-pi, pi] by step; ``accel_mps2`` is the longitudinal acceleration of the last step."""
+    from east, kept within [-pi, pi] by step; ``speed_mps`` is signed (negative: backwards),
+    ``odometer_m`` too (reversing winds it back); ``accel_mps2`` is the longitudinal acceleration
+    of the last step."""
 
     east_m: float = 0.0
     north_m: float = 0.0
@@ -84,12 +94,14 @@ class VehicleState:
     throttle_actual: float = 0.0
     brake_actual: float = 0.0
     odometer_m: float = 0.0
+    gear: float = 1.0  # the gear engaged: +1 forward, -1 reverse (a float, as every other field)
 
 
 def step(state: VehicleState, command: Command, dt_s: float, params: VehicleParams) -> None:
     """Advance ``state`` by ``dt_s`` seconds under ``command``, in place.
 
-    Inputs are clamped to their ranges (throttle and brake 0..1, steering to the wheel limit).
+    Inputs are clamped to their ranges (throttle and brake 0..1, steering to the wheel limit); a
+    gear change asked while moving is a full brake until the vehicle stands.
     Order within a step: actuators, then speed, then pose from the mean speed and the new steering
     angle along an exact circular arc, which keeps the scheme stable and the turning radius exact.
     """
@@ -103,6 +115,13 @@ def step(state: VehicleState, command: Command, dt_s: float, params: VehiclePara
     throttle = 0.0 if throttle < 0.0 else 1.0 if throttle > 1.0 else throttle
     brake = command.brake
     brake = 0.0 if brake < 0.0 else 1.0 if brake > 1.0 else brake
+    v = state.speed_mps
+    gear = -1.0 if command.reverse else 1.0
+    if gear != state.gear:
+        if abs(v) < p.gear_change_speed_mps:
+            state.gear = gear
+        else:
+            throttle, brake = 0.0, 1.0
     throttle_actual = state.throttle_actual + (throttle - state.throttle_actual) * alpha
     brake_actual = state.brake_actual + (brake - state.brake_actual) * alpha
 
@@ -115,25 +134,32 @@ def step(state: VehicleState, command: Command, dt_s: float, params: VehiclePara
     change = -max_change if change < -max_change else max_change if change > max_change else change
     steering = state.steering_rad + change
 
-    # Speed: drive force is traction-limited at low speed and power-limited above.
-    v = state.speed_mps
+    # Speed: drive force is traction-limited at low speed and power-limited above; the reverse
+    # gear's is governed, fading to nothing at its top speed.
     mass = p.mass_kg
     drive = p.max_drive_force_n
-    if v * drive > p.max_drive_power_w:
-        drive = p.max_drive_power_w / v
+    speed = abs(v)
+    gear = state.gear
+    if gear < 0.0:
+        drive *= max(0.0, 1.0 - speed / p.max_reverse_speed_mps)
+    elif speed * drive > p.max_drive_power_w:
+        drive = p.max_drive_power_w / speed
+    # Brake and resistance oppose the motion, or at rest the way the gear pushes.
+    motion = 1.0 if v > 0.0 else -1.0 if v < 0.0 else gear
     force = (
-        throttle_actual * drive
-        - brake_actual * p.max_brake_decel_mps2 * mass
-        - p.rolling_resistance * mass * GRAVITY_MPS2
-        - 0.5 * p.air_density_kgpm3 * p.drag_area_m2 * v * v
+        gear * throttle_actual * drive
+        - motion * brake_actual * p.max_brake_decel_mps2 * mass
+        - motion * p.rolling_resistance * mass * GRAVITY_MPS2
+        - motion * 0.5 * p.air_density_kgpm3 * p.drag_area_m2 * v * v
     )
     v_new = v + force / mass * dt_s
-    # Brake and resistance only oppose motion: they bring the vehicle to rest, never backwards.
-    if v_new < 0.0:
+    # They bring the vehicle to rest, never turn it round.
+    if v_new * motion < 0.0:
         v_new = 0.0
 
     # Pose: with constant speed and steering over the step the rear axle follows a circular arc;
     # its chord has length ds*sin(h)/h at the mid-step heading (h = half the heading change).
+    # Backwards, ds and h are both negative: the same arc, travelled the other way.
     v_mean = 0.5 * (v + v_new)
     distance = v_mean * dt_s
     yaw_rate = v_mean * math.tan(steering) / p.wheelbase_m

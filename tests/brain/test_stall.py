@@ -61,3 +61,52 @@ def test_creeping_forward_restarts_the_clock() -> None:
     for step in range(10):
         events += run(watch, 3.0, speed=0.05, station=300.0 + 1.5 * step)
     assert events == []
+
+
+def test_a_blockage_that_lasts_backs_up_where_there_is_a_way_back_and_is_still_reported() -> None:
+    watch = StallWatch(finish_m=1000.0, blocked_after_s=3.0, stall_after_s=5.0)
+    run(watch, 1.0, speed=5.0)
+    start = run.now_ns / S
+    events = []
+    for _ in range(60):
+        run.now_ns += S // 10
+        events += [(run.now_ns / S - start, e) for e in watch.update(run.now_ns, 0.0, 300.0, False, False, True)]
+    assert [e.code for _t, e in events] == ["corridor_blocked", "backing_up"]
+    assert 3.0 <= events[0][0] <= 3.2 and 5.0 <= events[1][0] <= 5.2
+    assert events[1][1].back_up and events[1][1].recover
+    assert watch.state is Standing.BACKING
+    assert run(watch, 10.0, speed=0.0, way=False) == []  # silent while it backs up
+    watch.backed_up()
+    assert watch.state is Standing.MOVING
+
+
+def test_a_stall_a_re_plan_did_not_end_backs_up_next() -> None:
+    watch = StallWatch(finish_m=1000.0, stall_after_s=5.0)
+    run(watch, 1.0, speed=5.0)
+    events = []
+    for _ in range(120):
+        run.now_ns += S // 10
+        events += [e.code for e in watch.update(run.now_ns, 0.0, 300.0, True, False, True)]
+    assert events == ["stalled", "backing_up"]
+
+
+def test_back_ups_are_bounded_around_one_standing_place() -> None:
+    """Backing up 4 m and driving back to the same dead end: three times, then it stays reported."""
+    watch = StallWatch(finish_m=1000.0, blocked_after_s=3.0, stall_after_s=5.0)
+    codes = []
+    for _ in range(5):
+        run(watch, 2.0, speed=1.0, station=296.0)  # back to the dead end
+        for _ in range(100):
+            run.now_ns += S // 10
+            codes += [e.code for e in watch.update(run.now_ns, 0.0, 300.0, False, False, True)]
+        if watch.state is Standing.BACKING:
+            watch.backed_up()
+    assert codes.count("backing_up") == 3
+    assert codes.count("corridor_blocked") == 5
+    # A new place, far on, may back up again.
+    run(watch, 2.0, speed=5.0, station=400.0)
+    codes = []
+    for _ in range(60):
+        run.now_ns += S // 10
+        codes += [e.code for e in watch.update(run.now_ns, 0.0, 400.0, False, False, True)]
+    assert codes == ["corridor_blocked", "backing_up"]

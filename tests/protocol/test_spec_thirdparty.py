@@ -494,9 +494,11 @@ NOTES = {
     ("LaneBorder", "confidence"): "0..1",
     ("Path", "path_id"): "changes when the planner re-plans",
     ("Path", "t_input_ns"): "ns, shared time: the oldest of the newest obstacle inputs planned from; 0 unknown",
+    ("Path", "reverse"): "drive the path backwards (points in the order of travel, speeds as magnitudes)",
     ("ActuatorCommand", "throttle"): "fraction 0..1",
     ("ActuatorCommand", "brake"): "fraction 0..1",
     ("ActuatorCommand", "steering_rad"): "rad, front wheels, left positive",
+    ("ActuatorCommand", "reverse"): "reverse gear; changed only at a standstill",
     ("SimTruth", "collisions"): "count",
 }
 
@@ -812,7 +814,7 @@ def test_project_accepts_a_forged_actuator_command(capture: Capture, schema: TpS
     data = tp_encode(
         schema,
         "ACTUATOR_COMMAND",
-        {"throttle": 0.42, "brake": 0.0, "steering_rad": -0.21, "stop_reason": "forged"},
+        {"throttle": 0.42, "brake": 0.0, "steering_rad": -0.21, "stop_reason": "forged", "reverse": False},
         source_id=4242,
         seq=123_456,
         t_meas_ns=1_700_000_000_000_000_000,
@@ -829,7 +831,7 @@ def test_project_accepts_a_forged_actuator_command(capture: Capture, schema: TpS
     other = tp_encode(
         schema,
         "ACTUATOR_COMMAND",
-        {"throttle": 0.1, "brake": 0.2, "steering_rad": 0.3, "stop_reason": ""},
+        {"throttle": 0.1, "brake": 0.2, "steering_rad": 0.3, "stop_reason": "", "reverse": True},
         source_id=4242,
         seq=1,
         t_meas_ns=0,
@@ -837,7 +839,7 @@ def test_project_accepts_a_forged_actuator_command(capture: Capture, schema: TpS
         key=keys[3],
         key_id=3,
     )
-    assert _project_opens(other, capture.directory / "bus.key")[1] == ActuatorCommand(0.1, 0.2, 0.3)
+    assert _project_opens(other, capture.directory / "bus.key")[1] == ActuatorCommand(0.1, 0.2, 0.3, reverse=True)
 
 
 def test_project_applies_the_evolution_rules_to_forged_bodies(capture: Capture, schema: TpSchema) -> None:
@@ -850,18 +852,18 @@ def test_project_applies_the_evolution_rules_to_forged_bodies(capture: Capture, 
         data = tp_encode(
             schema,
             "ACTUATOR_COMMAND",
-            {"throttle": 0.0, "brake": 0.0, "steering_rad": 0.0, "stop_reason": ""},
+            {"throttle": 0.0, "brake": 0.0, "steering_rad": 0.0, "stop_reason": "", "reverse": False},
             **header_fields,
         )
-        # Re-sign with a hand-made body: an older (3 fields) and a newer (6 fields) layout.
+        # Re-sign with a hand-made body: an older (3 fields) and a newer (7 fields) layout.
         message = tp_open(data, keys)
         unsigned = data[: TP_HEADER.size + len(message.channel)] + msgpack.packb(body, use_bin_type=True)
         return unsigned + tp_mac(keys[active], unsigned)
 
     older = forge([0.5, 0.25, 0.125])
     assert _project_opens(older, capture.directory / "bus.key")[1] == ActuatorCommand(0.5, 0.25, 0.125, "")
-    newer = forge([0.5, 0.25, 0.125, "why", 17, {"future": b"x"}])
-    assert _project_opens(newer, capture.directory / "bus.key")[1] == ActuatorCommand(0.5, 0.25, 0.125, "why")
+    newer = forge([0.5, 0.25, 0.125, "why", True, 17, {"future": b"x"}])
+    assert _project_opens(newer, capture.directory / "bus.key")[1] == ActuatorCommand(0.5, 0.25, 0.125, "why", True)
     assert tp_decode_body(schema, 31, tp_open(newer, keys).body)["stop_reason"] == "why"
 
     from protocol.errors import ProtocolError, Reason
@@ -949,7 +951,7 @@ def test_forged_traffic_passes_a_live_bus(capture: Capture, schema: TpSchema) ->
             wire.send(channel, part)
         bus.poll()
 
-    command = {"throttle": 0.5, "brake": 0.0, "steering_rad": 0.1, "stop_reason": ""}
+    command = {"throttle": 0.5, "brake": 0.0, "steering_rad": 0.1, "stop_reason": "", "reverse": False}
     send("ACTUATOR_COMMAND", command, 1_000, now)
     send("ACTUATOR_COMMAND", command, 1_000, now)  # replay
     send("ACTUATOR_COMMAND", command, 1_002, now + 2_000_000_000)  # edge of the freshness window
@@ -1001,6 +1003,7 @@ def test_spec_test_vector(spec: str, schema: TpSchema) -> None:
         "brake": 0.0,
         "steering_rad": -0.125,
         "stop_reason": "",
+        "reverse": False,
     }
     assert f"`{vector[-16:].hex()}`" in section
     _check_signed_test_vector(section, vector, schema)
@@ -1024,7 +1027,7 @@ def _check_signed_test_vector(section: str, vector: bytes, schema: TpSchema) -> 
     ours = Codec(Keyring({1: bytes(range(32))}, 1)).encode(
         b"ACTUATOR_COMMAND", ActuatorCommand(0.25, 0.0, -0.125, ""), 7, *_VECTOR_HEADER, Signer(7, seed)
     )
-    assert signed == ours and len(signed) == 161
+    assert signed == ours and len(signed) == 162
     msg = tp_open(signed, {1: bytes(range(32))})
     Ed25519PublicKey.from_public_bytes(public).verify(msg.signature, msg.signed_part)
     assert tp_decode_body(schema, msg.type_id, msg.body)["steering_rad"] == -0.125
@@ -1054,7 +1057,7 @@ def test_a_third_party_command_signature_passes_an_enforcing_node(capture: Captu
     received: list[Any] = []
     bus.subscribe("ACTUATOR_COMMAND", lambda msg, env: received.append((msg, env.source_id)))
     wire = MemTransport(hub)
-    command = {"throttle": 0.5, "brake": 0.0, "steering_rad": 0.1, "stop_reason": ""}
+    command = {"throttle": 0.5, "brake": 0.0, "steering_rad": 0.1, "stop_reason": "", "reverse": False}
     for seq, (source_id, signer) in enumerate([(40, 40), (40, None), (41, 41), (40, 41)], start=1):
         sign = (
             Ed25519PrivateKey.from_private_bytes(tp_signing_seed(master.signing_master, signer)).sign

@@ -1,4 +1,5 @@
-"""The brain process's cycle, on an in-process bus: it plans as soon as a stereo report arrives."""
+"""The brain process's cycle, on an in-process bus: it plans as soon as a stereo report arrives; its
+way back out of a dead end."""
 
 from __future__ import annotations
 
@@ -6,6 +7,11 @@ import threading
 import time
 import uuid
 
+import numpy as np
+import pytest
+
+from brain.fusion.cost import CostMap
+from brain.grid import GridWindow
 from modules.brain.module import Brain, BrainConfig
 from protocol import channels
 from protocol.auth import Keyring
@@ -66,3 +72,26 @@ def test_a_stereo_report_is_planned_on_at_once_and_the_grid_waits() -> None:
     # Reports come 20 ms after a path: on the grid alone the next path would be 80 ms later.
     assert max(delays) < 0.04, delays
     assert between == [8]  # one path per report, none from the grid in between
+
+
+def test_a_back_up_goes_straight_back_behind_a_vehicle_without_a_trail_and_stops_short_of_a_hazard() -> None:
+    clock = MasterClock()
+    brain = Brain(BrainConfig(), Runtime(Bus(MemTransport(uuid.uuid4().hex), 30, Keyring.generate(), clock), clock))
+    brain.on_start()
+    window = GridWindow.centred(0.0, 0.0, 40.0, 40.0, 0.2)
+    hazard = np.full(window.shape, 0.5, dtype=np.float32)  # unknown everywhere
+    cost_map = CostMap(window, 0, hazard, np.zeros(window.shape, np.float32), np.zeros(window.shape, bool))
+    facing_north = vehicle_state()._replace(yaw_rad=1.5707963)
+    way = brain.way_back(facing_north, cost_map)
+    assert way is not None and way.points[-1][1] == pytest.approx(-4.0, abs=1e-3)
+    row, col = window.cell_of(0.0, -3.0)
+    hazard[row, col] = 0.9  # a rock seen 3 m behind
+    way = brain.way_back(facing_north, cost_map)
+    assert way is not None and -2.2 < way.points[-1][1] < -1.0
+    brain.start_backing(way, now_ns=0)
+    assert brain.backing is not None
+    path = brain.backing.path
+    assert path.reverse and path.slow_mode and path.points[-1].speed_mps == 0.0
+    assert not brain.backing.over(facing_north, 1)
+    end = facing_north._replace(north_m=path.points[-1].north_m + 0.6)
+    assert brain.backing.over(end, 1)

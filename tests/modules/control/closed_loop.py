@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from modules.control.controller import ControllerSettings, Mode, Pose, VehicleController
+from modules.control.corridor_guard import CorridorGuard
 from modules.control.path_tracking import TrackedPath
 from modules.sim.vehicle import VehicleParams, VehicleState, step
 from protocol.messages import ActuatorCommand
@@ -60,12 +61,15 @@ def drive(
     start: tuple[float, float, float, float],
     duration_s: float,
     delay_steps: int = 0,
+    guard: CorridorGuard | None = None,
 ) -> Run:
     """Drive the path from ``start`` (east, north, yaw, speed) for ``duration_s`` or until the
     controller has brought the vehicle to rest at the end of the path. ``delay_steps``: the
-    controller sees the pose that many control periods (20 ms) late."""
+    controller sees the pose that many control periods (20 ms) late; ``guard``: the controller's
+    corridor guard."""
     params = VehicleParams()
     controller = VehicleController(settings)
+    controller.guard = guard
     controller.set_path(TrackedPath(east, north, speed))
     state = VehicleState(east_m=start[0], north_m=start[1], yaw_rad=start[2], speed_mps=start[3])
     command = ActuatorCommand(0.0, 0.0, 0.0)

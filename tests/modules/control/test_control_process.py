@@ -16,6 +16,7 @@ from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import (
     ActuatorCommand,
+    HealthEvent,
     NavQuality,
     Path,
     PathPoint,
@@ -27,12 +28,14 @@ from protocol.messages import (
 from tests.conftest import Processes
 from tests.integration.listener import Listener
 from tests.modules.control.closed_loop import signed_distance
+from tests.modules.control.short_course import SCENARIO
 
 pytestmark = pytest.mark.slow
 
 PATH_SPEED_MPS = 8.0  # the test's planner caps the course speeds, to keep the run short
 PATH_AHEAD_M = 80
 ESTOP_DEADLINE_S = 0.2  # a reaction deadline for the stop channel, not a benchmark
+NARROW_RDDF = "1,34.8650000,-116.8900000,6,25\n2,34.8650000,-116.8878127,6,25\n"  # 200 m due east, 3.7 m wide
 
 
 class Stand:
@@ -149,5 +152,39 @@ def test_control_drives_the_simulated_vehicle_and_stops_it_when_told_or_blind(
         latest = [cmd for _t, cmd in stand.commands[-20:]]
         assert all(cmd.brake == 1.0 and cmd.stop_reason == "estop: test e-stop" for cmd in latest)
         assert stand.speed() == 0.0
+    finally:
+        stand.listener.close()
+
+
+class Astray(Stand):
+    """A planner stand-in whose path leaves the corridor: straight on at 3 degrees left of the course."""
+
+    def path(self) -> Path:
+        angle, speed = math.radians(3.0), 5.0
+        return Path(2, tuple(PathPoint(s * math.cos(angle), s * math.sin(angle), speed) for s in range(-2, 80)), False)
+
+
+def test_control_stops_the_vehicle_inside_the_corridor_when_its_path_leads_out(
+    bus_url: str, key_file: FilePath, processes: Processes, tmp_path: FilePath
+) -> None:
+    (tmp_path / "course.rddf").write_text(NARROW_RDDF)
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(SCENARIO)
+    processes.module("time_service")
+    processes.module("sim", "--set", f"scenario={scenario}")
+    processes.module("control", "--set", f"course={tmp_path / 'course.rddf'}")
+    stand = Astray(bus_url, key_file, scenario)
+    events: list[HealthEvent] = []
+    stand.bus.subscribe(channels.HEALTH, lambda msg, _env: events.append(msg))
+    try:
+
+        def stopped_at_the_edge() -> bool:
+            last = stand.commands[-1][1] if stand.commands else None
+            return last is not None and last.stop_reason.startswith("corridor edge") and stand.speed() == 0.0
+
+        assert stand.run_until(stopped_at_the_edge, 30.0), processes.log("control") + processes.log("sim")
+        assert stand.truth is not None and stand.truth.corridor_exits == 0
+        assert stand.progress() > 10.0  # it drove before it stopped
+        assert [e.code for e in events if e.module == "control" and e.code == "corridor_edge"] == ["corridor_edge"]
     finally:
         stand.listener.close()

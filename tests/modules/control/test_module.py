@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path as FilePath
 from typing import Any
 
+import numpy as np
 import pytest
 
+from brain.course_config import load_course
 from modules.control.module import Control, ControlConfig
 from protocol import channels
 from protocol.auth import Keyring
@@ -17,6 +20,7 @@ from protocol.messages import (
     NavQuality,
     Path,
     PathPoint,
+    Severity,
     StopCommand,
     StopMode,
     VehicleState,
@@ -29,10 +33,13 @@ from rascal.module import Runtime
 
 TICK_NS = 20_000_000
 PATH = Path(7, tuple(PathPoint(float(x), 0.0, 5.0) for x in range(0, 60)), False)
+NARROW_RDDF = "1,34.8650000,-116.8900000,6,25\n2,34.8650000,-116.8897266,6,25\n"  # 25 m due east, 3.7 m wide
 
 
-def nav_state(east_m: float, speed_mps: float = 2.0, quality: NavQuality = NavQuality.DGPS) -> VehicleState:
-    return VehicleState(east_m, 0.3, 0.0, 0.0, speed_mps, speed_mps, 0.0, 0.0, (0.0,) * 25, int(quality))
+def nav_state(
+    east_m: float, speed_mps: float = 2.0, quality: NavQuality = NavQuality.DGPS, north_m: float = 0.3
+) -> VehicleState:
+    return VehicleState(east_m, north_m, 0.0, 0.0, speed_mps, speed_mps, 0.0, 0.0, (0.0,) * 25, int(quality))
 
 
 @dataclass
@@ -201,8 +208,42 @@ def test_stopping_the_process_leaves_the_vehicle_braked() -> None:
     assert (last.throttle, last.brake) == (0.0, 1.0) and last.stop_reason == "control stopping"
 
 
+def test_with_the_course_it_brakes_short_of_the_corridor_edge_and_reports_each_stop_once(tmp_path: FilePath) -> None:
+    rddf = tmp_path / "course.rddf"
+    rddf.write_text(NARROW_RDDF)
+    end_m = float(load_course(rddf).east_m[-1])  # PATH runs on past the corridor's end
+
+    def at(east_m: float, speed_mps: float = 2.0) -> VehicleState:
+        return nav_state(east_m, speed_mps, north_m=0.0)
+
+    there, back = np.arange(5.0, end_m - 1.0, 0.1), np.arange(end_m - 1.0, 5.0, -0.1)
+    free = make()
+    assert all(free.tick(at(x), PATH).throttle > 0.0 for x in there)  # without the course: on it drives
+    h = make(course=str(rddf))
+    outs = [h.tick(at(x), PATH) for x in there]
+    assert outs[0].throttle > 0.0 and outs[-1].brake == 1.0 and outs[-1].stop_reason.startswith("corridor edge ")
+    assert "; corridor edge " in h.control.status_detail()
+    # Standing with its front corners 0.3 m inside the corridor's rounded end: its first half metre would cross it.
+    stands = [h.tick(at(end_m - 0.3, speed_mps=0.0), PATH) for _ in range(25)]
+    assert all((o.throttle, o.brake) == (0.0, 1.0) and o.stop_reason.startswith("corridor edge") for o in stands)
+    assert [e.severity for e in h.events("corridor_edge")] == [int(Severity.WARNING)]  # once for the whole stop
+    for x in back:  # back where the footprint keeps its margin (as reversing would): that stop is over
+        h.tick(at(x), PATH)
+    assert h.control.controller.edge is not None and h.control.controller.edge.clear
+    for x in there:
+        h.tick(at(x), PATH)
+    assert len(h.events("corridor_edge")) == 2
+
+
 @pytest.mark.parametrize(
-    "config", [{"controller": "bang_bang"}, {"rate_hz": 0.0}, {"path_max_age_s": -1.0}, {"stanley_gain": 0.0}]
+    "config",
+    [
+        {"controller": "bang_bang"},
+        {"rate_hz": 0.0},
+        {"path_max_age_s": -1.0},
+        {"stanley_gain": 0.0},
+        {"corridor_horizon_s": 0.0},
+    ],
 )
 def test_bad_configuration_is_refused_by_name(config: dict[str, Any]) -> None:
     with pytest.raises(ConfigError):

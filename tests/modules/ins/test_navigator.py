@@ -14,8 +14,9 @@ from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
 from modules.nav_sensors import replay as sim
 from modules.nav_sensors.replay import Drive, Errors, Run
+from modules.sim.vehicle import VehicleState
 from modules.sim.world import SensorFault
-from protocol.messages import NavQuality
+from protocol.messages import ActuatorCommand, NavQuality
 
 OUTAGE_START_S, OUTAGE_END_S, OUTAGE_RUN_S = 120.0, 300.0, 330.0
 
@@ -199,3 +200,36 @@ def test_never_diverges(seed: int, kind: str) -> None:
     assert math.degrees(np.max(np.abs(result.errors.yaw_rad[sim.window(5.0, 45.0)]))) <= 1.0
     assert result.filter.reacquisitions == 0
     assert_covariance_healthy(result.run)
+
+
+def shuttle_driver(vehicle: VehicleState, t_s: float) -> ActuatorCommand:
+    """Forwards at 4 m/s, a stop at 30 s, 10 s of backing up at up to 2 m/s with the wheels turned,
+    then forwards again (the gear changes at a standstill: the vehicle brakes until then)."""
+    backing = 30.0 <= t_s < 40.0
+    target = -2.0 if backing else 4.0
+    steering = 0.25 if backing else 0.4 * math.sin(t_s / 6.0)
+    error = abs(target) - abs(vehicle.speed_mps)
+    if error >= 0:
+        return ActuatorCommand(min(1.0, 0.3 + 0.5 * error), 0.0, steering, reverse=backing)
+    return ActuatorCommand(0.0, min(1.0, -0.3 * error), steering, reverse=backing)
+
+
+@pytest.mark.parametrize("kind", FILTERS)
+def test_backing_up_is_navigated_with_and_without_gps(kind: str) -> None:
+    """The speedometer and odometer are signed, the yaw comes from the compass: backing up is
+    dead-reckoned backwards, through a GPS outage over the whole reversal too."""
+    for faults, position_limit_m in (((), 0.3), ((sim.gps_outage(28.0, 48.0),), 1.0)):
+        start = VehicleState(yaw_rad=math.radians(40.0))
+        drive = sim.drive(60.0, seed=3, faults=faults, driver=shuttle_driver, start=start)
+        nav = InsFilter(sim.ORIGIN, kind=kind)
+        run = sim.run(nav, drive.events, len(drive.truth))
+        errors = sim.errors(run, drive.truth)
+        truth_speed = np.array([t.speed_mps for t in drive.truth])
+        assert truth_speed.min() < -1.5  # it really backed up
+        span = sim.window(10.0, 60.0)
+        assert np.max(errors.position_m[span]) <= position_limit_m
+        assert math.degrees(np.max(np.abs(errors.yaw_rad[span]))) <= 2.0
+        assert sim.rms(errors.speed_mps[span]) <= 0.1
+        backing = truth_speed < -0.5
+        assert np.all(run.speed_mps[backing] < 0.0)
+        assert_covariance_healthy(run)

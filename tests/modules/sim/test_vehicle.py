@@ -145,3 +145,61 @@ def test_params_reject_non_positive_values_by_name() -> None:
         VehicleParams(mass_kg=0.0)
     with pytest.raises(ValueError, match="max_steering_rad"):
         VehicleParams(max_steering_rad=2.0)
+
+
+# -- the reverse gear ---------------------------------------------------------------------------
+
+FULL_REVERSE = ActuatorCommand(1.0, 0.0, 0.0, reverse=True)
+
+
+def test_full_throttle_in_reverse_drives_backwards_at_a_governed_low_speed() -> None:
+    state = VehicleState(yaw_rad=0.4)
+    history = run(state, FULL_REVERSE, 20.0)
+    assert history[-1].gear == -1.0
+    assert all(s.speed_mps <= 0.0 for s in history)
+    assert -PARAMS.max_reverse_speed_mps < history[-1].speed_mps < -2.0
+    # Straight back along the heading, and the odometer winds back by the distance.
+    back_m = math.hypot(history[-1].east_m, history[-1].north_m)
+    assert math.atan2(-history[-1].north_m, -history[-1].east_m) == pytest.approx(0.4, abs=1e-9)
+    assert history[-1].odometer_m == pytest.approx(-back_m)
+    assert all(s.yaw_rad == 0.4 for s in history)
+
+
+def test_reversing_with_the_wheels_turned_follows_the_same_circle_backwards() -> None:
+    steering_rad = 0.3
+    radius_m = PARAMS.wheelbase_m / math.tan(steering_rad)
+    state = VehicleState(steering_rad=steering_rad)
+    history = run(state, ActuatorCommand(0.6, 0.0, steering_rad, reverse=True), 3.0)
+    # The centre of the turn is left of the rear axle, forwards or backwards; backing up with the
+    # wheels turned left swings the nose right (yaw falls).
+    for s in history:
+        assert math.hypot(s.east_m, s.north_m - radius_m) == pytest.approx(radius_m, abs=1e-9)
+    assert -math.pi / 2 < history[-1].yaw_rad < -0.3 and history[-1].east_m < 0.0
+    assert history[-1].yaw_rate_radps < 0.0
+
+
+def test_reverse_asked_while_moving_brakes_to_a_standstill_before_the_gear_changes() -> None:
+    state = VehicleState(speed_mps=5.0)
+    history = run(state, FULL_REVERSE, 6.0)
+    braked = run(VehicleState(speed_mps=5.0), FULL_BRAKE, 6.0)
+    changed = next(k for k, s in enumerate(history) if s.gear == -1.0)
+    assert history[changed - 1].speed_mps >= 0.0 and abs(history[changed - 1].speed_mps) < PARAMS.gear_change_speed_mps
+    # Until the change it is exactly a full brake; after it, the throttle drives backwards.
+    assert [s.speed_mps for s in history[: changed - 1]] == [s.speed_mps for s in braked[: changed - 1]]
+    assert all(s.gear == 1.0 for s in history[:changed])
+    assert history[-1].speed_mps < -1.0
+
+
+def test_forward_asked_while_reversing_brakes_first_too() -> None:
+    state = VehicleState(speed_mps=-2.0, gear=-1.0)
+    history = run(state, FULL_THROTTLE, 4.0)
+    changed = next(k for k, s in enumerate(history) if s.gear == 1.0)
+    assert all(s.speed_mps <= 0.0 for s in history[:changed])
+    assert history[-1].speed_mps > 1.0
+
+
+def test_brake_and_resistance_stop_a_reversing_vehicle_without_turning_it_round() -> None:
+    history = run(VehicleState(speed_mps=-2.0, gear=-1.0), ActuatorCommand(0.0, 1.0, 0.0, reverse=True), 2.0)
+    assert all(s.speed_mps <= 0.0 for s in history) and history[-1].speed_mps == 0.0
+    coasting = run(VehicleState(speed_mps=-2.0, gear=-1.0), ActuatorCommand(0.0, 0.0, 0.0, reverse=True), 20.0)
+    assert all(s.speed_mps <= 0.0 for s in coasting) and coasting[-1].speed_mps == 0.0

@@ -1,0 +1,45 @@
+"""Backing out of a dead end: the vehicle starts with its nose 1.0 m from a 3 m wide boulder in the
+middle of a 9.8 m corridor. With its 2.29 m turning radius it cannot steer round from there (its
+side must clear the boulder's by 2.25 m), and it has
+no trail yet, so the brain backs it straight up behind the start (clear on the map, inside the
+corridor), then plans afresh and drives round the rock to the finish: reverse gear, reverse path,
+rear-axle tracking and the recovery, all in the closed loop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.integration.stack import NS, drive, rddf, scenario, write_deployment
+
+pytestmark = pytest.mark.slow
+
+# 119 m due east at 15 mph; a 16 ft boundary: a corridor 9.8 m wide.
+RDDF = rddf([(34.8650000, -116.8900000), (34.8650000, -116.8887000)], width_ft=16, speed_mph=15)
+# 1 m deep, 3 m across: its near side 1.0 m from the nose (the front is 1.7 m ahead of the rear axle).
+BOULDER = (
+    "obstacle",
+    {"name": "boulder", "shape": "box", "at_m": 3.2, "offset_m": 0.0, "length_m": 1.0, "width_m": 3.0, "height_m": 1.0},
+)
+
+
+def test_the_vehicle_backs_out_of_a_dead_end_and_drives_round(bus_url: str, key_file: Path, tmp_path: Path) -> None:
+    deploy = write_deployment(tmp_path, bus_url, RDDF, scenario(11, BOULDER))
+    with drive(tmp_path, bus_url, key_file, deploy, duration_s=80.0) as stack:
+        stack.wait_for_progress(20.0, 75.0)
+    backing = [env.t_pub_ns for env, e in stack.events if e.module == "brain" and e.code == "backing_up"]
+    assert backing, stack.tail("no back-up")
+    reversing = [env.t_meas_ns for env, t in stack.truth if t.speed_mps < -0.1]
+    assert reversing, stack.tail("it never reversed")
+    assert min(t.speed_mps for _env, t in stack.truth) >= -1.2  # the back-up's 1 m/s
+    forward_again = next(env.t_meas_ns for env, t in stack.truth if env.t_meas_ns > reversing[-1] and t.speed_mps > 0.1)
+    print(
+        f"back-up: asked {backing[0] / NS:.1f}, reversing {(reversing[0] - backing[0]) / NS:.1f} s later "
+        f"for {(reversing[-1] - reversing[0]) / NS:.1f} s, forward again {(forward_again - backing[0]) / NS:.1f} s "
+        f"after the ask; {len(backing)} back-up(s)"
+    )
+    measures = stack.drive
+    assert measures["finished"], stack.tail("the drive did not finish")
+    assert measures["collisions"] == 0 and measures["corridor_exits"] == 0, stack.tail("collision or exit")
+    assert stack.summary["health_events"].get("brain:backing_up", 0) >= 1
