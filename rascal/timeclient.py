@@ -17,6 +17,10 @@ ENCODE_SMOOTHING = 8  # the master's mean reply encoding time: an exponential me
 # costly, because every node hears every exchange and a multicast send delivers to each of them:
 # at 0.5 s, time sync was half of the recorder's and an idle module's CPU (py-spy).
 SETTLED_REQUEST_PERIOD_NS = 2_000_000_000
+# ... and not before this many exchanges (3.2 s at the callers' 10 Hz, once per node start): a fit
+# on the first few samples, taken while every module starts at once on a busy machine, was 50-65 us
+# off while it coasted 2 s (test_shared_time_on_loopback_within_50_us under load).
+SETTLE_SAMPLES = 32
 SETTLED_ERROR_BOUND_NS = 1_000_000  # a jittery link keeps asking at the callers' rate until this good
 # However fast a caller calls (a tool that asks whenever its poll returns is woken by its own
 # request): every request costs the master a signed reply, and a flood of them delays each reply
@@ -67,7 +71,10 @@ class TimeClient:
     def settled(self, local_ns: int) -> bool:
         """Whether the estimate is good enough to ask only every SETTLED_REQUEST_PERIOD_NS."""
         estimator = self.clock.estimator
-        return estimator.settled and estimator.status(local_ns).error_bound_ns <= SETTLED_ERROR_BOUND_NS
+        if not estimator.settled:
+            return False
+        status = estimator.status(local_ns)
+        return status.samples >= SETTLE_SAMPLES and status.error_bound_ns <= SETTLED_ERROR_BOUND_NS
 
     def _on_time_sync(self, msg: TimeSync, envelope: Envelope) -> None:
         if msg.kind != TimeSyncKind.REPLY or msg.client_source_id != self.bus.source_id:
