@@ -183,14 +183,33 @@ class VehicleController:
 
         target_speed = self._target_speed(where, speed)
         edge = self._check_edge(pose, speed, target_speed)
+        if edge.brake:
+            stop = f"corridor edge {edge.crossing_m:.1f} m ahead"
+            return self._speed_step(where, speed, target_speed, heading_error, dt_s, stop)
+        return self._speed_step(where, speed, target_speed, heading_error, dt_s, cap_mps=edge.cap_mps)
+
+    def _speed_step(
+        self,
+        where: Projection,
+        speed: float,
+        target_speed: float,
+        heading_error: float,
+        dt_s: float,
+        edge_stop: str | None = None,
+        cap_mps: float = math.inf,
+    ) -> Output:
+        """The speed half of a step, either way along the path: hold at its end, where it asks
+        to stop or at the corridor's edge (``edge_stop``), else the PI towards ``target_speed``
+        under the corridor guard's ``cap_mps``."""
+        s = self.settings
         if where.beyond_end_m > 0.0:
             out = self._hold(speed, "end of path", Mode.END)
         elif target_speed < s.stop_speed_mps and speed < s.stop_speed_mps:
             out = self._hold(speed, "path asks to stop", Mode.HOLD)
-        elif edge.brake:
-            out = self._hold(speed, f"corridor edge {edge.crossing_m:.1f} m ahead", Mode.CORRIDOR)
+        elif edge_stop is not None:
+            out = self._hold(speed, edge_stop, Mode.CORRIDOR)
         else:
-            target_speed = min(target_speed, edge.cap_mps)
+            target_speed = min(target_speed, cap_mps)
             effort = self.speed.update(target_speed, speed, dt_s)
             throttle, brake = split_effort(effort, s.speed.deadband)
             out = Output(throttle, brake, self.steering_rad, "", Mode.DRIVE, 0.0, 0.0, 0.0, 0.0)

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 from modules.control.controller import ControllerSettings, Mode, Output, Pose, VehicleController, require_finite
 from modules.control.path_tracking import Projection, TrackedPath, wrap_angle
-from modules.control.speed import split_effort
 
 
 @dataclass(frozen=True)
@@ -99,22 +98,7 @@ class ReversingController(VehicleController):
         self._steering_wanted_rad = target
         self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
 
-        target_speed = self._backing_speed(where)
-        if where.beyond_end_m > 0.0:
-            out = self._hold(speed, "end of path", Mode.END)
-        elif target_speed < s.stop_speed_mps and speed < s.stop_speed_mps:
-            out = self._hold(speed, "path asks to stop", Mode.HOLD)
-        else:
-            effort = self.speed.update(target_speed, speed, dt_s)
-            throttle, brake = split_effort(effort, s.speed.deadband)
-            out = Output(throttle, brake, self.steering_rad, "", Mode.DRIVE, 0.0, 0.0, 0.0, 0.0)
-        return out._replace(
-            cross_track_m=where.cross_track_m,
-            heading_error_rad=heading_error,
-            target_speed_mps=target_speed,
-            speed_error_mps=target_speed - speed,
-            reverse=True,
-        )
+        return self._speed_step(where, speed, self._backing_speed(where), heading_error, dt_s)._replace(reverse=True)
 
     def _backing_speed(self, where: Projection) -> float:
         r = self.reverse_settings
