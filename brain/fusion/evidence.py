@@ -47,6 +47,11 @@ class EvidenceLayers:
         """Add a message's log-odds (drawn on ``stamp``) to one class, within the bounds."""
         stamp.add_to(self.evidence[sensor_class], float(self.minimum), float(self.maximum))
 
+    def add_capped(self, sensor_class: int, stamp: Stamp, cap: float) -> None:
+        """Add a message's log-odds to one class, raising no cell above ``cap``: evidence that a
+        hazard may be there, never by itself that it is."""
+        stamp.add_capped_to(self.evidence[sensor_class], min(cap, float(self.maximum)))
+
     def mark_lane(self, stamp: Stamp, belief: float, outside: bool) -> None:
         """Cells drawn on ``stamp`` are outside the lane (or inside it) with ``belief`` 0..1."""
         touched = stamp.touched()

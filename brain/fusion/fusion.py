@@ -70,6 +70,11 @@ class FusionConfig:
     support_log_odds: float = setting(
         1.0, "a class's detection this strong no longer loses log-odds to other classes' clear views"
     )
+    margin_cap_log_odds: float = setting(
+        1.0,
+        "the ring a detection's range noise adds round it raises a cell's log-odds to at most this "
+        "(below the hazard threshold): far detections mark where a hazard may be, near ones where it is",
+    )
     view_bin_deg: float = setting(1.0, "bearing bins of a clear view: a reported object shadows whole bins")
     clear_margin_m: float = setting(0.3, "a clear view stops this much (plus the sensor's noise) short of objects")
     pose_span_s: float = setting(3.0, "navigation states kept for placing late descriptors")
@@ -201,24 +206,32 @@ class HazardFusion:
         self.stats.bad_descriptor += int(np.count_nonzero(~finite))
         keep = finite & (distance <= model.detect_range_m)
         self.stats.out_of_range += int(np.count_nonzero(finite & ~keep))
-        noise = model.noise_m + model.noise_per_m2 * distance[keep] ** 2
-        half = np.clip(obstacles[keep, 2:4], 0.0, MAX_EXTENT_M) / 2 + noise[:, None]
+        # The footprint grown by the noise every range has is the hazard; the ring the noise of
+        # its range adds only says where it may be (capped below the threshold), so a rock seen
+        # 30 m off by stereo does not close a passage beside it before nearer views place it.
+        core = np.clip(obstacles[keep, 2:4], 0.0, MAX_EXTENT_M) / 2 + model.noise_m
+        ring = core + (model.noise_per_m2 * distance[keep] ** 2)[:, None]
         assert self.layers is not None and self.stamp is not None
         # The clear view first, the detections over it: a message never clears its own footprints.
         seen = view_polygon(
             model,
             in_sensor[keep],
-            np.hypot(half[:, 0], half[:, 1]),
+            np.hypot(core[:, 0], core[:, 1]),
             math.radians(self.config.view_bin_deg),
             self.config.clear_margin_m + self.config.resolution_m,
         )
-        self.stamp.fill(sensor_frame(pose, model).to_enu(seen)[None], model.miss_log_odds * weight)
-        if len(half):
+        if len(core):
             confidence = np.clip(obstacles[keep, 6], 0.0, 1.0)
             range_factor = np.minimum(1.0, model.max_range_m / np.maximum(distance[keep], 1e-9))
             hits = model.hit_log_odds * weight * confidence * range_factor
-            corners = vehicle_frame(pose).to_enu(rectangles(xy[keep], half, yaw[keep]))
-            self.stamp.fill_each(corners, hits)
+            to_enu = vehicle_frame(pose).to_enu
+            cores = to_enu(rectangles(xy[keep], core, yaw[keep]))
+            self.stamp.fill_each(to_enu(rectangles(xy[keep], ring, yaw[keep])), hits)
+            self.stamp.fill_each(cores, np.zeros_like(hits))  # the rings alone
+            self.layers.add_capped(model.sensor_class, self.stamp, self.config.margin_cap_log_odds)
+        self.stamp.fill(sensor_frame(pose, model).to_enu(seen)[None], model.miss_log_odds * weight)
+        if len(core):
+            self.stamp.fill_each(cores, hits)
         self.layers.add(model.sensor_class, self.stamp)
         self._fused(message.sensor, t_meas_ns, int(np.count_nonzero(keep)))
         return True

@@ -179,6 +179,18 @@ class Stamp:
         np.clip(cells, low, high, out=cells)
         self.clear()
 
+    def add_capped_to(self, layer: NDArray[np.float32], cap: float) -> None:
+        """``layer`` += the stamp, but raising no cell above ``cap`` (nor lowering one already
+        above it); then clear the stamp."""
+        box = self.box
+        if box is None:
+            return
+        cells = layer[box]
+        ceiling = np.maximum(cells, np.float32(cap))
+        cv2.add(cells, self._scratch[box], dst=cells)
+        np.minimum(cells, ceiling, out=cells)
+        self.clear()
+
     def touched(self) -> tuple[tuple[slice, slice], NDArray[np.bool_]] | None:
         """The box touched and, in it, which cells were filled with a positive value."""
         box = self.box

@@ -103,7 +103,14 @@ class PlannerConfig:
     )
     cost_cap: float = setting(10.0, "finite stand-in for lethal and very high costs in the footprint sums")
     # Speeds.
-    slow_speed_mps: float = setting(1.0, "speed commanded when no candidate is left (RASCAL's 1 m/s)")
+    slow_speed_mps: float = setting(
+        1.0, "speed commanded when no candidate is left and no search gets through (RASCAL's 1 m/s)"
+    )
+    search_speed_mps: float = setting(
+        2.5,
+        "top speed on a searched path that gets through: its arcs are gate-checked and within the steering "
+        "limit; the curvature, steering-rate and clearance caps still apply",
+    )
     start_speed_mps: float = setting(1.0, "speed the profile may command at once from standstill")
     speed_lead_mps: float = setting(
         1.0, "on its path, a new profile starts from the last one's speed there, at most this above the vehicle's"
@@ -154,6 +161,7 @@ class PlannerConfig:
             "max_steering_rate_radps",
             "pursuit_lookahead_m",
             "slow_speed_mps",
+            "search_speed_mps",
             "search_room_m",
             "hybrid_step_m",
             "hybrid_cell_m",

@@ -12,8 +12,9 @@ RASCAL's behaviour (paper II.C), with a search as the fallback (Hybrid A*, or Kr
    is clear well beyond the stopping distance will do, ending in a stop short of the hazard, as
    long as the cells show a way past it (and never to leave slow mode); nearing that stop, a
    search that gets through takes over while there is still room to turn.
-3. If none is left, command ``slow_speed_mps`` (slow mode) and search a way to the furthest
-   reachable goal along the course in the window. By default (``search_method="hybrid"``)
+3. If none is left, search a way to the furthest reachable goal along the course in the window,
+   driven at up to ``search_speed_mps`` if it gets there, or else in slow mode at
+   ``slow_speed_mps`` (RASCAL's 1 m/s) to a stop where the search ended. By default (``search_method="hybrid"``)
    Hybrid A* over the vehicle's poses (`brain.planning.hybrid`): its arcs are drivable and were
    checked as the gate checks them, so its polyline is published as it is. With ``"lattice"``,
    A* over the footprint-cost grid, smoothed (`brain.planning.search`,
@@ -53,7 +54,7 @@ from brain.planning.profile import LateralProfile, swerve
 from brain.planning.pursuit import pursue
 from brain.planning.search import Lattice, SearchResult, search
 from brain.planning.smoothing import FreeCells, smooth
-from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, travel_time_s
+from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, steering_rate_cap, travel_time_s
 from protocol.messages import Path, PathPoint
 
 FloatArray = NDArray[np.float64]
@@ -280,15 +281,28 @@ class _Cycle:
         kept = self.kept_search_path()
         if kept is not None and current is not None:
             reached = current.reached_goal
-            return self.publish(current.path_id, PlanMode.SEARCH, kept, None, slow=True, reached_goal=reached, **counts)
+            return self.publish_searched(current.path_id, kept, reached, **counts)
         found = self.search_path(s_end)
         if found is None:
             return self.stop(**counts)
         points, reached, expansions = found
         path_id = self.planner._new_id()
         self.planner._current = _Current(path_id, polyline=points, reached_goal=reached)
+        return self.publish_searched(path_id, points, reached, expansions=expansions, **counts)
+
+    def publish_searched(self, path_id: int, points: FloatArray, reached: bool, **figures: int | bool) -> PlanResult:
+        """A searched path ends in a stop where the search did. One that gets through is driven at
+        up to the search speed; one that does not, in slow mode (RASCAL's 1 m/s) to its stop."""
         return self.publish(
-            path_id, PlanMode.SEARCH, points, None, slow=True, expansions=expansions, reached_goal=reached, **counts
+            path_id,
+            PlanMode.SEARCH,
+            points,
+            None,
+            slow=not reached,
+            stop_at_end=True,
+            top_speed_mps=self.cfg.search_speed_mps,
+            reached_goal=reached,
+            **figures,
         )
 
     def faster_way_past(
@@ -530,17 +544,18 @@ class _Cycle:
         stations_m: FloatArray | None,
         slow: bool,
         stop_at_end: bool = False,
+        top_speed_mps: float = math.inf,
         **figures: int | bool,
     ) -> PlanResult:
-        """The Path for ``points`` with speeds under every cap; it ends at speed 0 in slow mode
-        (a searched path ends where the search did) and when ``stop_at_end``."""
+        """The Path for ``points`` with speeds under every cap and ``top_speed_mps``; it ends at
+        speed 0 in slow mode and when ``stop_at_end``."""
         cfg = self.cfg
         along = arc_length(points)
         if stations_m is None:
             # A searched path is slow anyway; its stations only matter for the course's end, and
             # its length is never less than the station progress, so the end is seen early.
             stations_m = self.s0 + along
-        cap = self.speed_caps(points, stations_m)
+        cap = np.minimum(self.speed_caps(points, stations_m), top_speed_mps)
         if slow:
             cap = np.minimum(cap, cfg.slow_speed_mps)
         final = 0.0 if slow or stop_at_end else float(cap[-1])
@@ -555,14 +570,17 @@ class _Cycle:
 
     def speed_caps(self, points: FloatArray, stations_m: FloatArray) -> FloatArray:
         """Each point's speed cap: the course's speed slowed by the footprint cost, the path's
-        curvature, the clearance to caution cells, and the health monitor's limit."""
+        curvature, the steering rate, the clearance to caution cells, and the health monitor's limit."""
         cfg = self.cfg
         with np.errstate(divide="ignore"):
             turn_cap = np.sqrt(cfg.max_lateral_accel_mps2 / curvature(points, cfg.curvature_window_m))
         course_cap = self.frame.speed_at(stations_m) / (
             1.0 + cfg.cost_speed_gain * self.gate.hazards.cost_at(points[:, 0], points[:, 1])
         )
-        return np.minimum.reduce([turn_cap, course_cap, self.near_cap(points), np.full(len(points), self.max_speed)])
+        steering_cap = steering_rate_cap(points, cfg.curvature_window_m, cfg.wheelbase_m, cfg.max_steering_rate_radps)
+        return np.minimum.reduce(
+            [turn_cap, course_cap, steering_cap, self.near_cap(points), np.full(len(points), self.max_speed)]
+        )
 
     def near_cap(self, points: FloatArray) -> FloatArray:
         """The speed allowed at each point by its clearance to caution cells."""

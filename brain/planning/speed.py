@@ -2,7 +2,8 @@
 
 Caps per point: the course's desired speed (RDDF limit, its own curvature and its end, from
 `CoursePath.speed_mps`), the path's own curvature (lateral acceleration limit), clearance to
-caution cells, the footprint cost there, the health monitor's limit and slow mode. Then the
+caution cells, the footprint cost there, the steering rate, the health monitor's limit, and
+slow mode or a searched path's top speed. Then the
 profile is made reachable: forwards from the current speed with the acceleration limit and
 backwards with the braking limit, ending at ``final_speed_mps``. With v^2 running over arc
 length, each pass is a running minimum of ``cap^2 -/+ 2 a s`` and is exact for uneven spacing.
@@ -22,8 +23,9 @@ def arc_length(points: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])
 
 
-def curvature(points: FloatArray, window_m: float) -> FloatArray:
-    """Unsigned turning per metre at each point, over the vertices within ``window_m`` of path.
+def curvature(points: FloatArray, window_m: float, signed: bool = False) -> FloatArray:
+    """Turning per metre at each point (unsigned, or positive to the left when ``signed``), over
+    the vertices within ``window_m`` of path.
 
     Turning happens at vertices; the turn of the vertices in the window is divided by the path
     they stand for (half of each neighbouring segment), or by the window when that is shorter:
@@ -36,7 +38,9 @@ def curvature(points: FloatArray, window_m: float) -> FloatArray:
     step = np.diff(points, axis=0)
     heading = np.arctan2(step[:, 1], step[:, 0])
     turn = np.zeros(len(points))
-    turn[1:-1] = np.abs(np.angle(np.exp(1j * np.diff(heading))))
+    turn[1:-1] = np.angle(np.exp(1j * np.diff(heading)))
+    if not signed:
+        turn = np.abs(turn)
     length = np.hypot(step[:, 0], step[:, 1])
     share = (np.append(length, 0.0) + np.insert(length, 0, 0.0)) / 2.0
     along = arc_length(points)
@@ -46,6 +50,26 @@ def curvature(points: FloatArray, window_m: float) -> FloatArray:
     high = np.searchsorted(along, along + window_m / 2.0, side="right")
     span = np.minimum(total_share[high] - total_share[low], window_m)
     return (total_turn[high] - total_turn[low]) / np.maximum(span, 1e-9)
+
+
+def steering_rate_cap(
+    points: FloatArray, window_m: float, wheelbase_m: float, max_steering_rate_radps: float
+) -> FloatArray:
+    """Speed at each point at which the steering keeps up with the path: its wheel angle
+    atan(wheelbase x curvature) changes by d/ds per metre, so by d/ds x v per second, and the
+    actuator turns at most ``max_steering_rate_radps`` (a searched path swings from lock to lock)."""
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    if len(points) < 3:
+        return np.full(len(points), np.inf)
+    wheel = np.arctan(wheelbase_m * curvature(points, window_m, signed=True))
+    along = np.concatenate([[0.0], np.cumsum(np.maximum(np.diff(arc_length(points)), 1e-6))])
+    # Within half a window of either end the curvature is averaged over part of a window: hold
+    # the angle there instead, or a path that starts on a curve would seem to swing into it.
+    inner = (along >= window_m / 2) & (along <= along[-1] - window_m / 2)
+    if inner.any():
+        wheel = np.interp(along, along[inner], wheel[inner])
+    with np.errstate(divide="ignore"):
+        return max_steering_rate_radps / np.abs(np.gradient(wheel, along))
 
 
 def clearance_cap(clearance_m: FloatArray, least_m: float, speed_at_least_mps: float, gain: float) -> FloatArray:

@@ -24,7 +24,9 @@ box in the vehicle frame:
 - low: from where the beams met the plane to where they came back: they passed above the ground
   all that way, so the ground there is lower than the plane (by step_m from 0.7 m on; the drop
   that took it lower begins at the plane or nearer, the way a ditch's near wall does);
-- high: around its returns (what lies behind is hidden).
+- high: around its returns (what lies behind is hidden), cut into pieces at most ``max_depth_m``
+  deep: a box around a face seen at a slant reaches past its ends by up to its depth, and a
+  rock's side of a passage 2.7 m wide came out 0.3-0.6 m wider with one box per face.
 
 Low and high stretches reach half a beam spacing beyond their outermost returns, at those
 returns' own distance; level ones stop at their outermost return: hazards grow, level ground
@@ -210,6 +212,7 @@ def describe_sweep(
     sensor: int,
     step_m: float = 0.04,
     max_piece_m: float = 2.0,
+    max_depth_m: float = 0.25,
 ) -> GroundSweep:
     """The returns as level, low and high stretches (module docstring), right to left."""
     b, t, z = returns.bearings_rad, returns.distance_m, returns.height_m
@@ -222,13 +225,16 @@ def describe_sweep(
     kind = np.where(z < -step_m, LOW, np.where(z > step_m, HIGH, LEVEL))
     # Where a low beam met the plane: the ground beyond lay below it, so the drop began nearer.
     met = mount.x_m + mount.z_m / returns.slopes * np.cos(b)
-    runs = _runs(np.isfinite(t), kind, y.tolist(), max_piece_m)
+    runs = _runs(np.isfinite(t), kind, x.tolist(), y.tolist(), max_piece_m, max_depth_m)
     return GroundSweep(sensor, tuple(_stretch(run, int(kind[run.start]), x, y, z, met, reach) for run in runs))
 
 
-def _runs(valid: np.ndarray, kind: np.ndarray, y: list[float], max_piece_m: float) -> list[slice]:
+def _runs(
+    valid: np.ndarray, kind: np.ndarray, x: list[float], y: list[float], max_piece_m: float, max_depth_m: float
+) -> list[slice]:
     """Consecutive valid beams of one kind, right to left; low and high runs cut into pieces
-    at most ``max_piece_m`` across (each piece starts a new one where it would grow wider)."""
+    at most ``max_piece_m`` across, high ones also at most ``max_depth_m`` deep (each piece
+    starts a new one where it would grow wider or deeper)."""
     edges = np.flatnonzero((np.diff(valid) != 0) | (np.diff(kind) != 0)) + 1
     bounds = [0, *edges.tolist(), len(valid)]
     runs = []
@@ -238,11 +244,13 @@ def _runs(valid: np.ndarray, kind: np.ndarray, y: list[float], max_piece_m: floa
         if kind[start] == LEVEL:
             runs.append(slice(start, stop))
             continue
-        piece = start
+        depth = max_depth_m if kind[start] == HIGH else math.inf
+        piece, near, far = start, x[start], x[start]
         for beam in range(start + 1, stop):
-            if y[beam] - y[piece] > max_piece_m:
+            near, far = min(near, x[beam]), max(far, x[beam])
+            if y[beam] - y[piece] > max_piece_m or far - near > depth:
                 runs.append(slice(piece, beam))
-                piece = beam
+                piece, near, far = beam, x[beam], x[beam]
         runs.append(slice(piece, stop))
     return runs
 

@@ -159,3 +159,17 @@ def test_rolling_the_window_keeps_evidence_where_it_is() -> None:
         fusion.add_obstacles(20 * MS, obstacles(Sensor.LIDAR_H_LEFT))
         fusion.add_obstacles(20 * MS, obstacles(Sensor.LIDAR_H_RIGHT))
     assert probability_at(fusion.cost_map(), *spot) == pytest.approx(before, abs=1e-3)
+
+
+def test_a_far_detection_makes_its_noise_ring_suspect_never_lethal() -> None:
+    # Stereo places a rock 30 m off within about 0.7 m: the rock is a hazard, the ring round it
+    # only a place where it may be, however often it is seen, so a passage beside it stays open
+    # until nearer views place it.
+    fusion = parked(EAST, NORTH, YAW)
+    for _ in range(30):
+        fusion.add_obstacles(0, obstacles(Sensor.ESVS, box(30.0, 0.0, confidence=1.0)))
+    cost_map = fusion.cost_map()
+    threshold = fusion.cost_config.hazard_threshold
+    assert probability_at(cost_map, *enu_of(EAST, NORTH, YAW, 30.0, 0.0)) >= threshold
+    ring = probability_at(cost_map, *enu_of(EAST, NORTH, YAW, 30.0, 1.0))
+    assert 0.6 < ring < threshold

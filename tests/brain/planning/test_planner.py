@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from brain.planning import PlanMode, Planner, PlannerConfig, PlanResult
+from brain.planning.speed import arc_length, curvature
 from modules.sim.vehicle import VehicleParams
 from protocol.codec import Codec, decode_body
 from protocol.messages import NavQuality, Path, VehicleState
@@ -136,14 +137,19 @@ def test_a_kept_path_slowed_by_a_rock_beside_it_gives_way_to_a_faster_one() -> N
 
 
 @pytest.mark.parametrize("method", ["hybrid", "lattice"])
-def test_a_zigzag_of_gaps_is_searched_through_slowly(method: str) -> None:
+def test_a_zigzag_of_gaps_is_searched_through_at_the_search_speed(method: str) -> None:
     p = planner(search_method=method)
     grid = chicane(field())
     result = plan(p, grid, Pose(128.0, 0.0, 0.0, 8.0))  # too fast to stop short of the second wall
     points = path_points(result.path)
-    assert result.mode is PlanMode.SEARCH and result.slow_mode and result.reached_goal
-    assert points[:, 2].max() <= CONFIG.slow_speed_mps + 1e-9
+    assert result.mode is PlanMode.SEARCH and not result.slow_mode and result.reached_goal
+    assert CONFIG.slow_speed_mps < points[:, 2].max() <= CONFIG.search_speed_mps + 1e-9
     assert points[-1, 2] == 0.0
+    # Swinging from lock to lock, the steering keeps up at the speeds planned (within one chord).
+    wheel = np.arctan(CONFIG.wheelbase_m * curvature(points[:, :2], CONFIG.curvature_window_m, signed=True))
+    along = arc_length(points[:, :2])
+    rate = np.abs(np.diff(wheel)) / np.diff(along) * np.minimum(points[1:, 2], points[:-1, 2])
+    assert rate.max() <= 1.3 * CONFIG.max_steering_rate_radps
     assert_safe(points, grid)
     dense = densified(points[:, :2])
     through_first = dense[np.abs(dense[:, 0] - 140.5) < 0.5]
@@ -343,7 +349,7 @@ def test_driving_the_plans_through_an_obstacle_field() -> None:
 
 def test_partial_paths_can_be_switched_off() -> None:
     result = plan(planner(allow_partial=False), chicane(field()), Pose(100.0, 0.0, 0.0, 6.0))
-    assert result.mode is PlanMode.SEARCH and result.slow_mode and not result.partial
+    assert result.mode is PlanMode.SEARCH and not result.partial
 
 
 def test_the_path_is_a_valid_protocol_message_from_a_navigation_state() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from brain.planning.speed import arc_length, clearance_cap, curvature, reachable
+from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, steering_rate_cap
 
 
 def test_reachable_speeds_respect_caps_and_both_limits() -> None:
@@ -45,3 +45,25 @@ def test_curvature_of_a_circle_and_of_a_line() -> None:
 def test_clearance_cap_grows_with_clearance() -> None:
     caps = clearance_cap(np.array([0.5, 1.0, 3.0, np.inf]), least_m=1.0, speed_at_least_mps=2.0, gain=2.0)
     np.testing.assert_allclose(caps, [2.0, 2.0, 6.0, np.inf])
+
+
+def s_bend(radius_m: float, step_m: float = 0.1) -> np.ndarray:
+    """A left quarter circle then a right one: the wheels swing from lock to lock at the joint."""
+    angles = np.arange(0.0, np.pi / 2, step_m / radius_m)
+    left = np.column_stack((radius_m * np.sin(angles), radius_m * (1 - np.cos(angles))))
+    end = left[-1] + (radius_m, radius_m)
+    right = np.column_stack((end[0] - radius_m * np.cos(angles[1:]), end[1] - radius_m + radius_m * np.sin(angles[1:])))
+    return np.vstack((left, right))
+
+
+def test_the_steering_rate_caps_the_speed_where_the_path_swings_from_lock_to_lock() -> None:
+    wheelbase, rate = 1.25, 0.8
+    points = s_bend(3.0)
+    cap = steering_rate_cap(points, 1.0, wheelbase, rate)
+    joint = int(np.argmin(cap))
+    # The wheels swing 2 atan(1.25 / 3) = 0.79 rad over about the 1 m window: under 1.1 m/s there.
+    assert np.hypot(*(points[joint] - (3.0, 3.0))) < 0.5
+    assert 0.8 < cap[joint] < 1.1
+    # On the arcs themselves the wheel angle holds still: no cap.
+    assert np.all(cap[: joint - 15] > 10.0)
+    assert np.all(np.isinf(steering_rate_cap(np.column_stack((np.arange(10.0), np.zeros(10))), 1.0, wheelbase, rate)))
