@@ -2,13 +2,16 @@
 (Foxglove reads ``jsonschema``) and channel metadata naming the wire layout of the raw channel.
 
 Both are generated from the NamedTuple declarations in ``protocol.messages``, so they cannot
-drift from the wire. The JSON form is that of ``rascal bus echo`` (:func:`rascal.bustools.to_jsonable`:
-records as objects, sequences as arrays, ``bytes`` as hex); :func:`json_converter` produces the
-same thing compiled per type, about five times faster, because the recorder converts every message.
+drift from the wire. The JSON form: records as objects, sequences as arrays, ``bytes`` as base64
+(``contentEncoding`` ``base64``, which Foxglove decodes), and the integer fields that carry an
+enum (:data:`ENUM_FIELDS`) as the member's name, or the number as text for a value this build
+does not name. :func:`json_converter` compiles it per type because the twins convert every message.
 """
 
 from __future__ import annotations
 
+import base64
+import enum
 import inspect
 import json
 import typing
@@ -17,7 +20,27 @@ from typing import Any
 
 import protocol.messages  # noqa: F401  (registers every message type this build knows)
 from protocol.errors import ProtocolError
+from protocol.messages import (
+    Frame,
+    GpsFix,
+    GroundSweep,
+    HealthEvent,
+    LaneBorders,
+    ModuleState,
+    ModuleStatus,
+    NavQuality,
+    ObstacleList,
+    Sensor,
+    Severity,
+    StopCommand,
+    StopMode,
+    SurfaceProfile,
+    TimeSync,
+    TimeSyncKind,
+    VehicleState,
+)
 from protocol.schema import describe_type, info_for_id
+from rascal.timesync import SyncState
 
 RAW_ENCODING = "rascal-v1"  # message_encoding of the raw channels: whole signed messages (SPEC.md)
 JSON_ENCODING = "json"
@@ -30,8 +53,48 @@ _SCALAR_SCHEMAS: dict[type, dict[str, Any]] = {
     int: {"type": "integer"},
     bool: {"type": "boolean"},
     str: {"type": "string"},
-    bytes: {"type": "string", "contentEncoding": "base16"},
+    bytes: {"type": "string", "contentEncoding": "base64"},
 }
+# The wire declares these as int (protocol/messages.py names the enum in a comment).
+ENUM_FIELDS: dict[tuple[type, str], type[enum.IntEnum]] = {
+    (TimeSync, "kind"): TimeSyncKind,
+    (ModuleStatus, "state"): ModuleState,
+    (ModuleStatus, "clock_state"): SyncState,
+    (HealthEvent, "severity"): Severity,
+    (GpsFix, "quality"): NavQuality,
+    (VehicleState, "quality"): NavQuality,
+    (ObstacleList, "sensor"): Sensor,
+    (ObstacleList, "frame"): Frame,
+    (SurfaceProfile, "sensor"): Sensor,
+    (GroundSweep, "sensor"): Sensor,
+    (LaneBorders, "sensor"): Sensor,
+    (StopCommand, "mode"): StopMode,
+}
+
+
+def enum_schema(kind: type[enum.IntEnum]) -> dict[str, Any]:
+    """A member's name, or an unnamed value as decimal text (a peer may be newer than us)."""
+    names = "|".join(member.name for member in kind)
+    return {"type": "string", "title": kind.__name__, "pattern": f"^({names}|-?[0-9]+)$"}
+
+
+def enum_converter(kind: type[enum.IntEnum]) -> Callable[[int], str]:
+    names = {member.value: member.name for member in kind}
+    return lambda value: names.get(value) or str(value)
+
+
+def _b64(value: bytes) -> str:
+    return base64.b64encode(value).decode("ascii")
+
+
+def _field_schema(tp: type, name: str, hint: Any) -> dict[str, Any]:
+    kind = ENUM_FIELDS.get((tp, name))
+    return enum_schema(kind) if kind is not None else json_schema(hint)
+
+
+def _field_converter(tp: type, name: str, hint: Any) -> Callable[[Any], Any] | None:
+    kind = ENUM_FIELDS.get((tp, name))
+    return enum_converter(kind) if kind is not None else json_converter(hint)
 
 
 def json_schema(tp: Any) -> dict[str, Any]:
@@ -47,7 +110,7 @@ def json_schema(tp: Any) -> dict[str, Any]:
         schema: dict[str, Any] = {
             "title": tp.__name__,
             "type": "object",
-            "properties": {name: json_schema(hints[name]) for name in tp._fields},  # type: ignore[attr-defined]
+            "properties": {name: _field_schema(tp, name, hints[name]) for name in tp._fields},  # type: ignore[attr-defined]
             "required": [name for name in tp._fields if name not in defaults],  # type: ignore[attr-defined]
             "additionalProperties": False,
         }
@@ -64,7 +127,7 @@ def json_converter(tp: Any) -> Callable[[Any], Any] | None:
     if tp in (float, int, bool, str):
         return None
     if tp is bytes:
-        return bytes.hex
+        return _b64
     if typing.get_origin(tp) is tuple:
         (item, _ellipsis) = typing.get_args(tp)
         convert_item = json_converter(item)
@@ -74,7 +137,7 @@ def json_converter(tp: Any) -> Callable[[Any], Any] | None:
     if isinstance(tp, type) and issubclass(tp, tuple) and hasattr(tp, "_fields"):
         hints = typing.get_type_hints(tp)
         names: tuple[str, ...] = tp._fields  # type: ignore[attr-defined]
-        converters = [json_converter(hints[name]) for name in names]
+        converters = [_field_converter(tp, name, hints[name]) for name in names]
         if not any(converters):
             return lambda record: dict(zip(names, record, strict=True))
         pairs = list(zip(names, converters, strict=True))

@@ -16,6 +16,10 @@ What the file holds (MCAP, zstd chunks):
   write) and adds the JSON channels when the run has ended (rascal/record_twins.py).
   Messages whose body does not decode (a peer holding the key but sending a newer or broken
   layout) are kept raw only and counted.
+* the **foxglove-schema channels** of rascal/record_foxglove.py (``/tf``, ``/rascal/pose``,
+  ``/rascal/obstacles``, ``/rascal/path``, ``/rascal/corridor`` with ``--set course=RDDF``,
+  ``/rascal/map``, ``/rascal/gps``), converted at a bounded rate, so Foxglove's 3D and Map panels
+  draw the run (``foxglove=false`` leaves them out).
 * metadata ``run`` at the start (what the caller passed with ``--info``, the bus, the host) and
   ``recording`` at the end: messages received and lost per channel as the bus counted them, and
   rejected datagrams per source and reason. ``rascal.logread.check_sequences`` compares the
@@ -42,6 +46,7 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
+from brain.course_config import load_course
 from protocol.codec import Opened, unpack_body
 from protocol.errors import ProtocolError
 from protocol.messages import Severity
@@ -51,6 +56,7 @@ from rascal.bus import Bus
 from rascal.config import setting
 from rascal.launch import run_module
 from rascal.module import Module, Runtime
+from rascal.record_foxglove import FoxgloveOptions, FoxgloveTap
 from rascal.record_schema import (
     JSON_ENCODING,
     JSON_SCHEMA_ENCODING,
@@ -68,6 +74,7 @@ END_METADATA = "recording"
 PROFILE = "rascal"
 LIBRARY = "rascal recorder"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+DEFAULT_FOXGLOVE = FoxgloveOptions()
 _SEQ32 = 0xFFFFFFFF
 _dumps = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode
 
@@ -102,6 +109,7 @@ class RecordingWriter:
         json_channels: bool = True,
         compression: str = "zstd",
         chunk_bytes: int = 1024 * 1024,
+        foxglove: FoxgloveOptions | None = DEFAULT_FOXGLOVE,
     ) -> None:
         if compression not in COMPRESSIONS:
             raise ValueError(f"compression must be one of {sorted(COMPRESSIONS)}, not {compression!r}")
@@ -111,6 +119,7 @@ class RecordingWriter:
         self.writer = Writer(self._file, chunk_size=chunk_bytes, compression=COMPRESSIONS[compression])
         self.writer.start(profile=PROFILE, library=LIBRARY)
         self.writer.add_metadata(RUN_METADATA, run_info)
+        self.foxglove = None if foxglove is None else FoxgloveTap(self.writer, foxglove)
         self._routes: dict[tuple[str, int], _Route] = {}
         self._schemas: dict[int, int] = {}  # type id -> MCAP schema id
         self.messages = 0
@@ -129,6 +138,8 @@ class RecordingWriter:
         add(route.raw_id, recv_ns, data, publish_ns, sequence)
         self.messages += 1
         self.bytes += len(data)
+        if self.foxglove is not None:
+            self.foxglove.feed(opened, recv_ns)
         if route.json_id:
             try:
                 msg = route.decode(unpack_body(opened.body, opened.source_id))  # type: ignore[misc]
@@ -208,6 +219,11 @@ class RecorderConfig:
     compression: str = setting("zstd", "chunk compression: zstd, lz4 or none")
     chunk_kib: int = setting(1024, "uncompressed size at which a chunk is written")
     flush_period_s: float = setting(1.0, "write the chunk in progress at least this often (what a crash can lose)")
+    foxglove: bool = setting(True, "also write foxglove-schema channels (3D scene, transform, map, GPS) for Foxglove")
+    foxglove_hz: float = setting(10.0, "rate of the foxglove scene, transform, pose, path and GPS channels")
+    foxglove_grid_period_s: float = setting(2.0, "period of the foxglove map Grid (the biggest message)")
+    course: str = setting("", "RDDF file whose corridor goes into the foxglove scene (empty: no corridor)")
+    origin: str = setting("", "ENU origin of the course, 'lat,lon[,alt]' (empty: its first waypoint)")
 
 
 class Recorder(Module):
@@ -235,6 +251,7 @@ class Recorder(Module):
             "recorder_source_id": str(self.bus.source_id),
             "restarts": str(self.runtime.restarts),
             "started_ns": str(self.clock.now_ns()),
+            **course_info(config.course, config.origin),
             **parse_info(config.info),
         }
         self.writer = RecordingWriter(
@@ -243,6 +260,7 @@ class Recorder(Module):
             json_channels=config.json_channels,
             compression=config.compression,
             chunk_bytes=config.chunk_kib * 1024,
+            foxglove=foxglove_options(config) if config.foxglove else None,
         )
         # Not woken by each of ~600 datagrams a second: they wait in the sockets (with their
         # kernel arrival times) until the loop's next task, at most the time request's 0.1 s.
@@ -284,6 +302,19 @@ class Recorder(Module):
         if self.writer is None:
             return "not recording"
         return f"{self.writer.messages} messages, {self.writer.bytes / 1e6:.1f} MB into {self.writer.path}"
+
+
+def foxglove_options(config: RecorderConfig) -> FoxgloveOptions:
+    """The recorder's settings as the tap's options; a course that does not load is an error at start."""
+    if not config.foxglove_hz > 0:
+        raise ValueError("recorder: foxglove_hz must be positive")
+    course = load_course(config.course, config.origin) if config.course else None
+    return FoxgloveOptions(course, 1.0 / config.foxglove_hz, config.foxglove_grid_period_s)
+
+
+def course_info(course: str, origin: str) -> dict[str, str]:
+    """Run metadata naming the course, so the JSON twins rewrite draws the same corridor."""
+    return {"course": str(Path(course).resolve()), "origin": origin} if course else {}
 
 
 def describe_transport(transport: Transport) -> str:

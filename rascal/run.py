@@ -84,6 +84,8 @@ class RunSupervisor(Supervisor):
                 "out": str((run_dir / "run.mcap").resolve()),
                 "info": f"deployment={deployment.name},host={host}",
                 "json_channels": "false",  # added after the run (rascal/record_twins.py)
+                # The corridor is not on the bus: the recorder draws it for Foxglove from the course.
+                **({"course": str(deployment.course), "origin": deployment.origin} if deployment.course else {}),
             },
             entry="rascal.recording",
         )

@@ -1,9 +1,11 @@
 """rascal view --foxglove: a client speaking Foxglove's WebSocket protocol connects to the viewer
-process, sees the five channels advertised with their Foxglove schemas, subscribes, and receives
-each (the map's cells inside the Grid). And the recordings' JSON channels are in Foxglove's terms."""
+process, sees the channels advertised with their Foxglove JSON schemas (the recordings' own,
+rascal/foxglove_schemas.py), subscribes, and receives each, valid by its schema (the map's cells
+inside the Grid). And the recordings' JSON channels are in Foxglove's terms."""
 
 from __future__ import annotations
 
+import base64
 import json
 import socket
 import struct
@@ -21,6 +23,7 @@ from protocol.auth import load_keyring
 from rascal.bus import Bus
 from rascal.clock import MasterClock
 from rascal.record_schema import JSON_ENCODING, JSON_SCHEMA_ENCODING
+from tests.rascal.test_recording import validate
 from tests.rascal.test_view import free_port, publish_drive, recording, snapshot, start, stop, vehicle
 
 websocket = pytest.importorskip("websocket", reason="websocket-client (a dev dependency) is not installed")
@@ -54,7 +57,7 @@ def test_a_foxglove_client_receives_map_scene_path_and_vehicle(bus_url: str, key
             if message["op"] == "advertise":
                 advertised.update({channel["id"]: channel for channel in message["channels"]})
         assert {c["topic"]: c["schemaName"] for c in advertised.values()} == TOPICS
-        assert {c["encoding"] for c in advertised.values()} == {"protobuf"}
+        assert {(c["encoding"], c["schemaEncoding"]) for c in advertised.values()} == {("json", "jsonschema")}
         topic_of = dict(enumerate((c["topic"] for c in advertised.values()), start=1))
         subscriptions = [{"id": i, "channelId": cid} for i, cid in enumerate(advertised, start=1)]
         client.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
@@ -72,7 +75,11 @@ def test_a_foxglove_client_receives_map_scene_path_and_vehicle(bus_url: str, key
                 (subscription,) = struct.unpack_from("<I", frame, 1)
                 received[topic_of[subscription]] = frame[13:]  # opcode, subscription id, log time
         assert set(received) == set(TOPICS), (sorted(received), log.read_text()[-2000:])
-        assert zlib.decompress(snapshot().cells) in received["/rascal/map"]  # the cells, as Grid data
+        schemas = {c["topic"]: json.loads(c["schema"]) for c in advertised.values()}
+        for topic, data in received.items():
+            validate(json.loads(data), schemas[topic], topic)
+        grid = json.loads(received["/rascal/map"])
+        assert base64.b64decode(grid["data"]) == zlib.decompress(snapshot().cells)  # the cells, as Grid data
         assert b"vehicle" in received["/tf"] and b"lidar_h_left" in received["/rascal/obstacles"]
     finally:
         if client is not None:
