@@ -3,9 +3,10 @@
     rascal log info RUN.mcap [--strict]                  channels, counts, rates, sources, gaps, rejects
     rascal log echo RUN.mcap [--channels REGEX] [--count N]   messages as JSON lines
     rascal log play RUN.mcap [--speed S] [--channels REGEX] [--bus URL] [--exact]
+    rascal log record [-o FILE] [--duration S] [CHANNEL ...]   the live bus into MCAP until Ctrl-C
 
-Recordings are made by ``python -m rascal.recording`` (rascal/recording.py); play's design is
-in rascal/logplay.py.
+Recordings are made by rascal/recording.py (``rascal run``'s recorder process, or ``log
+record`` here with its RecordingWriter); play's design is in rascal/logplay.py.
 """
 
 from __future__ import annotations
@@ -14,19 +15,28 @@ import argparse
 import itertools
 import json
 import re
+import socket
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.table import Table
 
+from protocol.codec import Opened
 from protocol.errors import ProtocolError
-from protocol.schema import info_for_id
-from rascal.bustools import make_console, to_jsonable, tool_bus
+from rascal.bustools import (
+    declared_channel,
+    make_console,
+    reporting_errors,
+    run_for,
+    to_jsonable,
+    tool_bus,
+    type_name,
+)
 from rascal.logread import (
     END_METADATA,
     RUN_METADATA,
@@ -38,6 +48,9 @@ from rascal.logread import (
     decode,
     iter_datagrams,
 )
+
+if TYPE_CHECKING:
+    from rascal.recording import RecordingWriter
 
 
 @dataclass
@@ -100,13 +113,6 @@ def summarize(path: str | Path) -> LogSummary:
         summary.last_ns = max(summary.last_ns, datagram.log_time_ns)
         summary.sources.add(datagram.source_id)
     return LogSummary(Path(path), channels, scan.metadata, checker.report(scan), scan.truncated)
-
-
-def type_name(type_id: int) -> str:
-    try:
-        return info_for_id(type_id).cls.__name__
-    except ProtocolError:
-        return f"#{type_id}"  # a type newer than this tool
 
 
 def _time_text(t_ns: int) -> str:
@@ -192,7 +198,7 @@ def _body_json(datagram: Datagram) -> Any:
 
 def add_log_commands(commands: Any) -> None:
     """Register ``log info``, ``log echo`` and ``log play`` on the `rascal` command's subparsers."""
-    log = commands.add_parser("log", help="recordings (MCAP): summarise, print, play back onto the bus")
+    log = commands.add_parser("log", help="recordings (MCAP): record, summarise, print, play back onto the bus")
     tools = log.add_subparsers(dest="tool", required=True)
     info = tools.add_parser("info", help="channels, counts, rates, duration, sources, sequence gaps, rejects")
     info.add_argument("file", type=Path, help="recording (.mcap)")
@@ -207,10 +213,14 @@ def add_log_commands(commands: Any) -> None:
     play.add_argument("file", type=Path, help="recording (.mcap)")
     play.add_argument("--speed", type=float, default=1.0, help="time scale: 2 is twice as fast, 0 as fast as possible")
     play.add_argument("--channels", type=_regex, help="channels to play (whole-name regex; default all but TIME_SYNC)")
-    play.add_argument("--bus", dest="play_bus", help="bus URL (default: $RASCAL_BUS_URL or loopback multicast)")
     play.add_argument("--exact", action="store_true", help="send the recorded bytes unchanged (replay-attack tests)")
     play.add_argument("--sync-wait", type=float, default=1.0, help="seconds to wait for the time master first")
     play.set_defaults(handler=_play)
+    record = tools.add_parser("record", help="record the live bus into MCAP until Ctrl-C (or --duration)")
+    record.add_argument("channels", nargs="*", help="channels to record (default: every channel)")
+    record.add_argument("-o", "--output", type=Path, help="MCAP file to write (default: record-DATE-TIME.mcap here)")
+    record.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
+    record.set_defaults(handler=_record)
 
 
 def _regex(text: str) -> str:
@@ -265,7 +275,7 @@ def _play(args: argparse.Namespace) -> int:
     if not args.speed >= 0:
         print(f"rascal log play: --speed must be 0 or positive, not {args.speed}", file=sys.stderr)
         return 2
-    bus, time_client = tool_bus(args.play_bus or getattr(args, "bus", None))
+    bus, time_client = tool_bus(args.bus)
     try:
         player = Player(bus, time_client, speed=args.speed, channels=args.channels, exact=args.exact)
         synced = player.sync(args.sync_wait)
@@ -283,12 +293,64 @@ def _play(args: argparse.Namespace) -> int:
     return 0
 
 
+@reporting_errors
+def _record(args: argparse.Namespace) -> int:
+    wanted = [declared_channel(channel) for channel in args.channels]
+    output = args.output or Path(datetime.now().strftime("record-%Y%m%d-%H%M%S.mcap"))
+    print(f"recording {', '.join(wanted) or 'every channel'} into {output} (Ctrl-C ends it)", flush=True)
+    writer = record(args.bus, output, wanted, args.duration)
+    print(f"recorded {writer.messages} messages ({writer.bytes / 1e6:.1f} MB) into {writer.path}")
+    return 0
+
+
+def record(url: str | None, output: Path, wanted: list[str], duration_s: float | None) -> RecordingWriter:
+    """Record what the bus accepts on ``wanted`` channels (empty: all) until ``duration_s`` or
+    Ctrl-C, with the recorder's writer (rascal/recording.py); the file is finished either way."""
+    from rascal.recording import RecordingWriter, bus_counts, describe_transport  # 0.4 s: only when recording
+
+    bus, time_client = tool_bus(url)
+    try:
+        run_info = {
+            "bus": describe_transport(bus.transport),
+            "host": socket.gethostname(),
+            "started_at": datetime.now().astimezone().isoformat(timespec="seconds"),
+            "recorder_source_id": str(bus.source_id),
+            "started_ns": str(bus.clock.now_ns()),
+            "channels": ",".join(wanted) or "all",
+        }
+        writer = RecordingWriter(output, run_info)
+        try:
+            bus.subscribe_raw(lambda opened, data, recv_ns: _keep(writer, wanted, opened, data, recv_ns))
+            run_for(bus, time_client, duration_s, 1.0, writer.flush)
+        finally:
+            writer.close(_counts_of(bus_counts(bus, writer), wanted))
+    finally:
+        bus.close()
+    return writer
+
+
+def _keep(writer: RecordingWriter, wanted: list[str], opened: Opened, data: bytes, recv_ns: int) -> None:
+    if not wanted or opened.channel in wanted:
+        writer.write(opened, data, recv_ns)
+
+
+def _counts_of(counts: dict[str, str], wanted: list[str]) -> dict[str, str]:
+    """The end-of-recording counts of the recorded channels only: ``log info``'s sequence check
+    compares them with the file."""
+    if not wanted:
+        return counts
+    return {
+        key: value
+        for key, value in counts.items()
+        if not key.startswith(("received/", "lost/")) or key.partition("/")[2] in wanted
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     """`rascal log ...` on its own: ``main(["info", "RUN.mcap"])``."""
-    parser = argparse.ArgumentParser(prog="rascal")
-    add_log_commands(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["log", *(sys.argv[1:] if argv is None else argv)])
-    return int(args.handler(args))
+    from rascal.cli import main as rascal_main  # the one parser, with the global options
+
+    return rascal_main(["log", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -21,6 +21,17 @@ CASES = {
     "wrong field type": (["bus", "pub", "STOP", '["x", 3]'], "not a valid StopCommand"),
     "unknown field": (["bus", "pub", "STOP", '{"mode": 1, "speed": 3}'], "has no field(s) ['speed']"),
     "unknown type": (["bus", "pub", "MY_CHANNEL", "{}", "--type", "Nope"], "unknown message type 'Nope'"),
+    "bad URL after the verb": (["bus", "list", "--duration", "0.1", "--bus", "foo://x"], "unknown scheme"),
+    "unknown channel (info)": (["bus", "info", "NO_SUCH_CHANNEL"], "unknown channel 'NO_SUCH_CHANNEL'"),
+    "bad window (hz)": (["bus", "hz", "GPS", "--window", "0", "--duration", "0.1"], "--window must be positive"),
+    "unknown channel (record)": (["log", "record", "GSP", "--duration", "0.1"], "did you mean GPS"),
+    "unwritable output (record)": (
+        ["log", "record", "-o", "/dev/null/x.mcap", "--bus", "mem://rec", "--duration", "0.1"],
+        "/dev/null",
+    ),
+    "unknown type (interface)": (["interface", "show", "ObstacleLst"], "did you mean ObstacleList"),
+    "--bus for run": (["--bus", "udpm://239.1.2.3:7000", "run"], "--bus does not apply"),
+    "bad URL for a delegated tool": (["spoof", "forge", "--bus", "foo://x"], "only udpm://"),
 }
 
 
@@ -38,6 +49,17 @@ def test_a_missing_key_file_is_one_line_and_exit_2(
     assert main(["bus", "list", "--duration", "0.1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "key file not found" in err and "rascal keygen" in err, err
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_a_missing_key_file_given_as_an_option_is_one_line_and_exit_2(
+    where: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    option = ["--key-file", str(tmp_path / "absent.key")]
+    tool = ["time", "status", "--duration", "0.1"]
+    assert main([*option, *tool] if where == "before" else [*tool, *option]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "absent.key: key file not found" in err, err
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
