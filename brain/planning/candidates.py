@@ -7,7 +7,8 @@ fast vehicle swerves gently and a slow one sharply (and also at the course's spe
 vehicle slowed below it has swerves gentle enough to speed up through). A late variant keeps the current path until
 just before the conflict. Everything is evaluated at once as (candidates x stations) arrays at
 the published point spacing, against a raster of the hazard clearance across the corridor at
-each station: candidates through a lethal cell there are dropped, the rest are scored
+each station: candidates through a lethal cell there are dropped, and so are swerves sharper
+than the vehicle turns (it would overshoot them towards the corridor's edge); the rest are scored
 (footprint cost integral + offset + change from the current path + squared slope + the time
 to drive it under the speed caps it will get: a sharp swerve, or one that shaves an obstacle,
 is slow), and the
@@ -105,8 +106,15 @@ def choose(
         return Choice(None, None, None, generated, 0, 0)
     weight = _trapezoid_weights(s)
     base_d = base.at(s)[0]
+    # A swerve sharper than the vehicle can turn is not a path it can follow: it would cut or
+    # overshoot it (a 4 m offset over a 4 m blend asks for a 0.7 m radius; the vehicle turns 2.3 m).
+    kappa = _curvature(frame, config, s, d[index])
+    drivable = kappa.max(axis=1, initial=0.0) <= 1.0 / config.turning_radius_m
+    index, kappa = index[drivable], kappa[drivable]
+    if len(index) == 0:
+        return Choice(None, None, None, generated, 0, 0)
     cost = raster.cost(d[index])
-    caps = _speed_caps(frame, config, s, d[index], clearance[index], cost)
+    caps = _speed_caps(frame, config, s, kappa, clearance[index], cost)
     along = s - s[0]
     start = max(speed_mps, config.start_speed_mps)
     speeds = reachable(along, caps, start, np.inf, config.max_accel_mps2, config.max_decel_mps2)
@@ -151,25 +159,30 @@ def choose(
     return Choice(None, None, None, generated, int(full.sum()), gated)
 
 
+def _curvature(frame: CorridorFrame, config: PlannerConfig, s: FloatArray, d: FloatArray) -> FloatArray:
+    """Each candidate's curvature magnitude at each station (candidates x stations), estimated in
+    the frame: that of the centre line plus that of the offset, averaged over the curvature window
+    as the published path's is. Zero with fewer than three stations."""
+    if len(s) < 3:
+        return np.zeros(d.shape)
+    bend = np.gradient(np.unwrap(frame.heading_at(s)), s)
+    kappa = np.abs(bend + np.gradient(np.gradient(d, s, axis=1), s, axis=1))
+    width = max(1, round(config.curvature_window_m / config.point_spacing_m)) | 1
+    return cv2.blur(kappa.astype(np.float32), (width, 1), borderType=cv2.BORDER_REPLICATE).astype(float)
+
+
 def _speed_caps(
     frame: CorridorFrame,
     config: PlannerConfig,
     s: FloatArray,
-    d: FloatArray,
+    kappa: FloatArray,
     clearance: FloatArray,
     cost: FloatArray,
 ) -> FloatArray:
-    """The speed caps the planner will put on each candidate (candidates x stations), estimated
-    in the frame: the course's speed slowed by the footprint cost, the lateral acceleration in
-    the curvature of the centre line plus that of the offset (averaged over the curvature
-    window, as the published path's is), and the clearance to hazards."""
+    """The speed caps the planner will put on each candidate (candidates x stations): the
+    course's speed slowed by the footprint cost, the lateral acceleration in the curvature
+    ``kappa`` (`_curvature`), and the clearance to hazards."""
     course = frame.speed_at(s) / (1.0 + config.cost_speed_gain * cost)
-    if len(s) < 3:
-        return course
-    bend = np.gradient(np.unwrap(frame.heading_at(s)), s)
-    kappa = np.abs(bend + np.gradient(np.gradient(d, s, axis=1), s, axis=1))
-    width = max(1, round(config.curvature_window_m / config.point_spacing_m)) | 1
-    kappa = cv2.blur(kappa.astype(np.float32), (width, 1), borderType=cv2.BORDER_REPLICATE).astype(float)
     with np.errstate(divide="ignore"):
         turn = np.sqrt(config.max_lateral_accel_mps2 / kappa)
     near = clearance_cap(

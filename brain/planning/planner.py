@@ -138,8 +138,11 @@ class Planner:
 
     @classmethod
     def for_course(cls, course: Course, config: PlannerConfig | None = None, first_path_id: int = 1) -> Planner:
-        """A planner on ``course.interpolate()`` (its default limits) and ``course.corridor``."""
-        return cls(course.interpolate(), course.corridor, config, first_path_id)
+        """A planner on ``course.interpolate()`` (its default limits) and ``course.corridor``. The
+        course's speed does not ramp up from a standstill at its start: each profile accelerates
+        from the vehicle's own speed, and a ramp from 0 would hold a vehicle that has backed up
+        behind the start there for good."""
+        return cls(course.interpolate(initial_speed_mps=math.inf), course.corridor, config, first_path_id)
 
     def reset(self) -> None:
         """Forget the current path and the station (e.g. after a long outage or a manual drive)."""

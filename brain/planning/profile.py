@@ -86,9 +86,11 @@ class LateralProfile:
 
     def until(self, s_m: float) -> LateralProfile:
         """This profile ending exactly at ``s_m``: later pieces dropped, the last one cut there, or
-        a level piece added when the profile ended before (``s_m`` must not precede its start)."""
+        a level piece added when the profile ended before. Before its start the profile is level,
+        so ending it there is that level (a vehicle that rolled or backed behind the station its
+        path was planned from)."""
         if s_m < self.start_m[0]:
-            raise ValueError(f"cannot end a profile at {s_m}, before its start {self.start_m[0]}")
+            return LateralProfile.level(s_m, float(self.at(self.start_m[0])[0]))
         keep = self.start_m < s_m
         keep[0] = True
         cut = LateralProfile(self.start_m[keep], np.minimum(self.end_m[keep], s_m), self.coefficients[keep])

@@ -210,6 +210,7 @@ class Control(Module):
             self._publish(self.controller.brake(reason, Mode.FAILSAFE, self.dt_s))
             return
         pose = Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps)
+        pose = pose.ahead((state_reading.age_ns or 0) / 1e9)  # where the vehicle is now, not when measured
         out = self.controller.drive(pose, self.dt_s)
         # Being far off the path is a fail-safe too: the path no longer describes where we are.
         self._failsafe(out.stop_reason if out.mode is Mode.OFF_PATH else None)

@@ -1,6 +1,8 @@
-"""Backing out of a dead end: the vehicle starts with its nose 1.0 m from a 3 m wide boulder in the
-middle of a 9.8 m corridor. With its 2.29 m turning radius it cannot steer round from there (its
-side must clear the boulder's by 2.25 m), and it has
+"""Backing out of a dead end: the vehicle starts with its nose 1.0 m from a 5 m wide boulder in the
+middle of a 9.8 m corridor. With its 2.29 m turning radius it cannot steer round from there: its
+outer front corner, swung at full lock, sweeps a circle of 3.35 m radius round the turn's centre
+that gets 2.5 m out to the side (the boulder's side) only 3.3 m ahead, past the boulder's face
+2.7 m ahead of the rear axle. It has
 no trail yet, so the brain backs it straight up behind the start (clear on the map, inside the
 corridor), then plans afresh and drives round the rock to the finish: reverse gear, reverse path,
 rear-axle tracking and the recovery, all in the closed loop."""
@@ -17,10 +19,11 @@ pytestmark = pytest.mark.slow
 
 # 119 m due east at 15 mph; a 16 ft boundary: a corridor 9.8 m wide.
 RDDF = rddf([(34.8650000, -116.8900000), (34.8650000, -116.8887000)], width_ft=16, speed_mph=15)
-# 1 m deep, 3 m across: its near side 1.0 m from the nose (the front is 1.7 m ahead of the rear axle).
+# 1 m deep, 5 m across (2.4 m of corridor either side): its near side 1.0 m from the nose (the
+# front is 1.7 m ahead of the rear axle). A 3 m boulder could be swung round at full lock.
 BOULDER = (
     "obstacle",
-    {"name": "boulder", "shape": "box", "at_m": 3.2, "offset_m": 0.0, "length_m": 1.0, "width_m": 3.0, "height_m": 1.0},
+    {"name": "boulder", "shape": "box", "at_m": 3.2, "offset_m": 0.0, "length_m": 1.0, "width_m": 5.0, "height_m": 1.0},
 )
 
 

@@ -267,6 +267,35 @@ def test_a_vehicle_already_too_close_to_a_hazard_stands_still() -> None:
     assert len(result.path.points) == 1 and result.path.points[0].speed_mps == 0.0
 
 
+def test_a_swerve_sharper_than_the_vehicle_turns_is_not_offered() -> None:
+    """Standing with a 3 m rock 1 m beyond the nose: round it the lattice has only swerves that
+    step 2 m sideways in 1 m (a vehicle turning no tighter than 2.3 m would overshoot them), and
+    no search gets round forwards. The planner stands still, so the brain backs up."""
+    p = planner()
+    grid = field().box(102.7, -1.5, 103.7, 1.5)
+    result = plan(p, grid, Pose(100.0, 0.0, 0.0, 0.0))
+    assert result.mode is PlanMode.STOP and len(result.path.points) == 1
+    # Further back, a gentle enough swerve exists and is taken.
+    p.reset()
+    result = plan(p, grid, Pose(92.0, 0.0, 0.0, 0.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and not result.slow_mode
+    assert_safe(points, grid)
+    radius = CONFIG.turning_radius_m
+    ahead = points[:, 0] - 92.0
+    reach = np.where(ahead < radius, radius - np.sqrt(np.maximum(radius**2 - ahead**2, 0.0)), np.inf)
+    assert np.all(np.abs(points[:, 1]) <= reach + 0.1)  # within the turning circles from the start
+
+
+def test_a_vehicle_backed_up_behind_the_start_drives_off_again() -> None:
+    """Behind the course's first waypoint (still inside its corridor) the path moves at once: the
+    course's own speed does not ramp up from 0 at the start."""
+    result = plan(planner(), Map.around(20.0, 0.0, 60.0, 30.0), Pose(-3.0, 0.0, 0.0, 0.0))
+    points = path_points(result.path)
+    assert result.mode is PlanMode.REPLAN and points[0, 2] == pytest.approx(CONFIG.start_speed_mps)
+    assert np.all(points[1:, 2] > CONFIG.start_speed_mps)
+
+
 def test_outside_the_corridor_or_the_window_means_stop() -> None:
     p = planner()
     assert plan(p, field(), Pose(110.0, 9.0, 0.0, 3.0)).mode is PlanMode.STOP

@@ -49,5 +49,7 @@ def test_cutting_and_pruning_profiles() -> None:
     np.testing.assert_allclose(path.since(16.0).at(s)[0], path.at(s)[0])
     with pytest.raises(ValueError, match="follow"):
         path.then(3.0, 4.0, np.zeros(6))
-    with pytest.raises(ValueError, match="before its start"):
-        path.until(-1.0)
+    # Before its start a profile is level, so it can end there (a vehicle that backed up behind it).
+    behind = path.until(-1.0)
+    assert behind.end_m[-1] == -1.0 and behind.at(-1.0)[0] == pytest.approx(1.0)
+    assert swerve(path, -1.0, 3.0, 4.0, 10.0).at(3.0)[0] == pytest.approx(3.0)

@@ -116,3 +116,17 @@ def test_saturated_steering_slows_to_the_tightest_turns_safe_speed() -> None:
     on = controller(straight(10.0)).drive(Pose(5.0, 0.0, 0.0, 8.0), DT)
     assert off.target_speed_mps == pytest.approx(tightest_speed) and tightest_speed < 2.5
     assert on.target_speed_mps == pytest.approx(10.0)
+
+
+def test_a_pose_is_dead_reckoned_to_the_present_along_its_arc() -> None:
+    """A quarter turn of radius 2 m at 1 m/s, reckoned in one go, lands where the arc does; a
+    reversing pose moves backwards; no age, no change."""
+    pose = Pose(10.0, 5.0, 0.0, 1.0, 0.5)
+    quarter = pose.ahead(math.pi)  # pi m of a 2 m radius circle
+    assert (quarter.east_m, quarter.north_m) == pytest.approx((12.0, 7.0))
+    assert quarter.yaw_rad == pytest.approx(math.pi / 2)
+    small = pose.ahead(0.05)
+    assert small.east_m == pytest.approx(10.05, abs=1e-3) and small.north_m == pytest.approx(5.000625, abs=1e-6)
+    backing = Pose(0.0, 0.0, math.pi / 2, -1.0).ahead(0.1)
+    assert (backing.east_m, backing.north_m) == pytest.approx((0.0, -0.1))
+    assert pose.ahead(0.0) is pose and pose.ahead(-1.0) is pose
