@@ -19,7 +19,8 @@ What the file holds (MCAP, zstd chunks):
 * the **foxglove-schema channels** of rascal/record_foxglove.py (``/tf``, ``/rascal/pose``,
   ``/rascal/obstacles``, ``/rascal/path``, ``/rascal/corridor`` with ``--set course=RDDF``,
   ``/rascal/map``, ``/rascal/gps``), converted at a bounded rate, so Foxglove's 3D and Map panels
-  draw the run (``foxglove=false`` leaves them out).
+  draw the run (``foxglove=false`` leaves them out; ``rascal run`` does, and the rewrite after
+  the run that adds the JSON channels makes them from the raw ones).
 * metadata ``run`` at the start (what the caller passed with ``--info``, the bus, the host) and
   ``recording`` at the end: messages received and lost per channel as the bus counted them, and
   rejected datagrams per source and reason. ``rascal.logread.check_sequences`` compares the

@@ -83,8 +83,11 @@ class RunSupervisor(Supervisor):
             settings={
                 "out": str((run_dir / "run.mcap").resolve()),
                 "info": f"deployment={deployment.name},host={host}",
-                "json_channels": "false",  # added after the run (rascal/record_twins.py)
-                # The corridor is not on the bus: the recorder draws it for Foxglove from the course.
+                # JSON twins and foxglove channels are added after the run (rascal/record_twins.py),
+                # which rewrites the file anyway: made live too, they would double the recorder's CPU.
+                "json_channels": "false",
+                "foxglove": "false",
+                # The corridor is not on the bus: the course in the run metadata draws it for Foxglove.
                 **({"course": str(deployment.course), "origin": deployment.origin} if deployment.course else {}),
             },
             entry="rascal.recording",

@@ -555,8 +555,9 @@ class _Cycle:
         cfg = self.cfg
         along = arc_length(points)
         if stations_m is None:
-            # A searched path is slow anyway; its stations only matter for the course's end, and
-            # its length is never less than the station progress, so the end is seen early.
+            # A searched path's stations, estimated as the start's plus the length along it, are
+            # never behind the true ones: its course speeds come from slightly further on, and the
+            # course's end is seen early.
             stations_m = self.s0 + along
         cap = np.minimum(self.speed_caps(points, stations_m), top_speed_mps)
         if slow:
