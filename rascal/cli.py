@@ -226,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--json", action="store_true", help="one JSON document")
     show.set_defaults(handler=_interface_show)
 
-    add_rddf_commands(commands)
+    add_rddf_commands(commands, _rddf_plot)
     add_scenario_commands(commands)
     add_log_commands(commands)
     add_deploy_commands(commands)
@@ -238,6 +238,12 @@ def _demo(args: argparse.Namespace) -> int:
     from rascal.demo import run_demo
 
     return run_demo()
+
+
+def _rddf_plot(args: argparse.Namespace) -> int:
+    from rascal.rddf_plot import plot_command  # here: matplotlib takes half a second to import
+
+    return plot_command(args)
 
 
 def _keygen(args: argparse.Namespace) -> int:

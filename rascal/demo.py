@@ -4,7 +4,7 @@ The default deployment (deploy/localhost.toml) on this machine: the simulator an
 the ESVS, the INS, the brain and control, each its own process on the signed loopback bus,
 supervised by ``rascal run``, which ends when the vehicle has finished the course (or after
 ``DEMO_LIMIT_S``). ``rascal run`` prints where the run's files and its report are (track, final
-map, speed, cross-track error and module timing images; rascal/report.py); the demo adds one line
+map, speed, cross-track error and module timing images, each PNG and SVG; rascal/report.py); the demo adds one line
 of drive measures and its verdict.
 """
 

@@ -1,223 +1,250 @@
-"""Line charts drawn with OpenCV for the run report: a frame with ticked, labelled axes, lines
-(NaN breaks them), shaded bands, markers and a legend. The text, colours and tick steps are
-the RDDF plot's (brain/rddf_cli.py), so the report's pictures look like one family."""
+"""The report's charts along the course and of module timing, drawn with matplotlib
+(rascal/plotting.py): speed against the limits, offset from the centre line and distance from
+the planned path, and per module jitter beside a table of its figures."""
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from typing import Any
 
-import cv2
 import numpy as np
-from numpy.typing import ArrayLike
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
-from brain.rddf_cli import FONT, INK, PAPER, SHIFT, Color, draw_text, nice_length, to_point
+from rascal.plotting import CORRIDOR_EDGE, CORRIDOR_FILL, INK, new_figure, styled
+from rascal.report_data import FloatArray, RunData, Track
 
-GRID: Color = (232, 232, 232)
-LEFT_PX, RIGHT_PX, TOP_PX, BOTTOM_PX = 90, 30, 56, 62  # room for labels around the plot area
-SWATCH_PX = 28
-ROW_PX = 20
-
-
-@dataclass
-class LegendEntry:
-    label: str
-    color: Color
-    thickness: int = 2  # a line's thickness, a marker's radius
-    kind: str = "line"  # "line", "band" or "marker"
-
-
-def legend_size(entries: list[LegendEntry], scale: float = 0.45) -> tuple[int, int]:
-    """Width and height of the legend box of ``entries``."""
-    text_w = max(cv2.getTextSize(entry.label, FONT, scale, 1)[0][0] for entry in entries)
-    return SWATCH_PX + 18 + text_w, ROW_PX * len(entries) + 10
+CHART_PX = (1600, 640)  # width, height of one chart panel
+TRUE = "#c82828"
+NAV = "#5a5a5a"
+LIMIT = "#3c3c3c"
+PROFILE = "#3caae6"
+JITTER = "#288cc8"
+OBSTACLE = "#784620"
+MAX_OUTPUTS = 4
+STATION = "station along the course (m)"
 
 
-def draw_legend(image: np.ndarray, entries: list[LegendEntry], x0: int, y0: int, scale: float = 0.45) -> None:
-    """A boxed legend with its top-left corner at (x0, y0): a swatch and a label per entry."""
-    box_w, box_h = legend_size(entries, scale)
-    cv2.rectangle(image, (x0, y0), (x0 + box_w, y0 + box_h), PAPER, -1)
-    cv2.rectangle(image, (x0, y0), (x0 + box_w, y0 + box_h), INK, 1)
-    for row, entry in enumerate(entries):
-        y = y0 + 15 + row * ROW_PX
-        a, b = (x0 + 6, y), (x0 + 6 + SWATCH_PX, y)
-        if entry.kind == "line":
-            cv2.line(image, a, b, entry.color, max(entry.thickness, 2), cv2.LINE_AA)
-        elif entry.kind == "band":
-            cv2.rectangle(image, (a[0], y - 6), (b[0], y + 6), entry.color, -1)
-            cv2.rectangle(image, (a[0], y - 6), (b[0], y + 6), INK, 1)
-        else:
-            centre = ((a[0] + b[0]) // 2, y)
-            cv2.circle(image, centre, entry.thickness, entry.color, -1, cv2.LINE_AA)
-            cv2.circle(image, centre, entry.thickness, INK, 1, cv2.LINE_AA)
-        draw_text(image, entry.label, np.array([b[0] + 10.0, y + 5.0]), scale)
+# -- along the course ----------------------------------------------------------------------------
 
 
-@dataclass
-class Chart:
-    """One x-y plot in ``box`` (left, top, width, height: the whole panel, labels included)."""
-
-    image: np.ndarray
-    box: tuple[int, int, int, int]
-    x_range: tuple[float, float]
-    y_range: tuple[float, float]
-    title: str
-    x_label: str
-    y_label: str
-    log_x: bool = False
-    left_px: int = LEFT_PX  # room for the y tick labels (categories need more)
-    y_labels: list[str] | None = None  # categorical y: label i names the row from y = n-1-i to n-i
-    legend: list[LegendEntry] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        left, top, width, height = self.box
-        self.plot = (left + self.left_px, top + TOP_PX, width - self.left_px - RIGHT_PX, height - TOP_PX - BOTTOM_PX)
-        low, high = self.x_range
-        if self.log_x:
-            low, high = math.log10(low), math.log10(high)
-        self._x = (low, high if high > low else low + 1.0)
-        low, high = self.y_range
-        self._y = (low, high if high > low else low + 1.0)
-        self._draw_frame()
-
-    # -- coordinates --------------------------------------------------------------------------
-
-    def px(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
-        """Pixel positions (float) of data points; values outside the ranges land outside the plot."""
-        left, top, width, height = self.plot
-        x = np.asarray(x, dtype=float)
-        if self.log_x:
-            x = np.log10(np.maximum(x, 1e-12))
-        fx = (x - self._x[0]) / (self._x[1] - self._x[0])
-        fy = (np.asarray(y, dtype=float) - self._y[0]) / (self._y[1] - self._y[0])
-        return np.stack(np.broadcast_arrays(left + fx * width, top + (1.0 - fy) * height), axis=-1)
-
-    # -- drawing --------------------------------------------------------------------------------
-
-    def line(self, x: ArrayLike, y: ArrayLike, color: Color, label: str = "", thickness: int = 2) -> None:
-        """A polyline through the points in order; a NaN in ``y`` (or ``x``) leaves a gap."""
-        points = self.px(x, y)
-        finite = np.all(np.isfinite(points), axis=-1)
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], finite.astype(np.int8), [0]])))
-        clip = self._clipped()
-        for start, stop in zip(edges[::2], edges[1::2], strict=True):
-            run = np.round(points[start:stop] * (1 << SHIFT)).astype(np.int32)
-            cv2.polylines(clip, [run], False, color, thickness, cv2.LINE_AA, SHIFT)
-        self._paste(clip)
-        if label:
-            self.legend.append(LegendEntry(label, color, thickness, "line"))
-
-    def band(self, x: ArrayLike, low: ArrayLike, high: ArrayLike, color: Color, label: str = "") -> None:
-        """The area between ``low`` and ``high`` over ``x``, filled."""
-        upper = self.px(x, high)
-        lower = self.px(x, low)[::-1]
-        polygon = np.round(np.concatenate([upper, lower]) * (1 << SHIFT)).astype(np.int32)
-        clip = self._clipped()
-        cv2.fillPoly(clip, [polygon], color, cv2.LINE_AA, SHIFT)
-        self._paste(clip)
-        if label:
-            self.legend.append(LegendEntry(label, color, 0, "band"))
-
-    def markers(self, x: ArrayLike, y: ArrayLike, color: Color, label: str = "", radius: int = 5) -> None:
-        for point in self.px(x, y).reshape(-1, 2):
-            if self._inside(point):
-                cv2.circle(self.image, to_point(point), radius, color, -1, cv2.LINE_AA)
-                cv2.circle(self.image, to_point(point), radius, INK, 1, cv2.LINE_AA)
-        if label:
-            self.legend.append(LegendEntry(label, color, radius, "marker"))
-
-    def spans(self, x: ArrayLike, low: ArrayLike, high: ArrayLike, color: Color, label: str = "") -> None:
-        """A thick vertical bar from ``low`` to ``high`` at each ``x`` (e.g. an obstacle's width)."""
-        clip = self._clipped()
-        for bottom, top in zip(self.px(x, low).reshape(-1, 2), self.px(x, high).reshape(-1, 2), strict=True):
-            cv2.line(clip, to_point(bottom), to_point(top), color, 6, cv2.LINE_AA)
-        self._paste(clip)
-        if label:
-            self.legend.append(LegendEntry(label, color, 6))
-
-    def note(self, text: str) -> None:
-        """A line of text under the title (what the numbers say, e.g. RMS and max)."""
-        left, top, _width, _height = self.box
-        draw_text(self.image, text, np.array([left + self.left_px, top + 46.0]), 0.45)
-
-    def draw_legend(self, corner: str = "top right") -> None:
-        """The legend inside the plot, in one corner (``top``/``bottom`` + ``left``/``right``), or
-        ``above`` it, right of the title."""
-        if not self.legend:
-            return
-        left, top, width, height = self.plot
-        box_w, box_h = legend_size(self.legend)
-        x0 = left + width - box_w - 10 if "right" in corner or corner == "above" else left + 10
-        y0 = top + 10 if "top" in corner else top + height - box_h - 10
-        if corner == "above":
-            y0 = max(0, top - box_h - 4)
-        draw_legend(self.image, self.legend, x0, y0)
-
-    # -- internals ------------------------------------------------------------------------------
-
-    def _draw_frame(self) -> None:
-        left, top, width, height = self.plot
-        for x in self._ticks(self._x, log=self.log_x):
-            (px, _), label = self.px(x, self._y[0]), _tick_label(x)
-            cv2.line(self.image, to_point([px, top]), to_point([px, top + height]), GRID, 1)
-            cv2.line(self.image, to_point([px, top + height]), to_point([px, top + height + 5]), INK, 1)
-            text_w = cv2.getTextSize(label, FONT, 0.45, 1)[0][0]
-            draw_text(self.image, label, np.array([px - text_w / 2.0, top + height + 22.0]), 0.45)
-        x_min = 10 ** self._x[0] if self.log_x else self._x[0]
-        if self.y_labels is not None:  # categories: a label per row, a grid line between rows
-            rows = len(self.y_labels)
-            for index, label in enumerate(self.y_labels):
-                (_, py), (_, line_y) = self.px(x_min, rows - index - 0.5), self.px(x_min, rows - index - 1)
-                cv2.line(self.image, to_point([left, line_y]), to_point([left + width, line_y]), GRID, 1)
-                text_w = cv2.getTextSize(label, FONT, 0.45, 1)[0][0]
-                draw_text(self.image, label, np.array([left - 10.0 - text_w, py + 5.0]), 0.45)
-        for y in self._ticks(self._y) if self.y_labels is None else []:
-            (_, py), label = self.px(x_min, y), _tick_label(y)
-            cv2.line(self.image, to_point([left, py]), to_point([left + width, py]), GRID, 1)
-            cv2.line(self.image, to_point([left - 5, py]), to_point([left, py]), INK, 1)
-            text_w = cv2.getTextSize(label, FONT, 0.45, 1)[0][0]
-            draw_text(self.image, label, np.array([left - 10.0 - text_w, py + 5.0]), 0.45)
-        cv2.rectangle(self.image, (left, top), (left + width, top + height), INK, 1)
-        box_left, box_top, _box_w, box_h = self.box
-        draw_text(self.image, self.title, np.array([box_left + self.left_px, box_top + 24.0]), 0.65)
-        x_w = cv2.getTextSize(self.x_label, FONT, 0.5, 1)[0][0]
-        draw_text(self.image, self.x_label, np.array([left + (width - x_w) / 2.0, box_top + box_h - 12.0]), 0.5)
-        if self.y_label:
-            self._vertical_label(self.y_label, box_left + 8, top + height // 2)
-
-    @staticmethod
-    def _ticks(limits: tuple[float, float], log: bool = False) -> list[float]:
-        low, high = limits
-        if log:
-            return [10.0**k for k in range(math.ceil(low), math.floor(high) + 1)]
-        step = nice_length((high - low) / 5.0)
-        first = math.ceil(low / step - 1e-9) * step
-        return [first + k * step for k in range(int((high - first) / step + 1e-9) + 1)]
-
-    def _vertical_label(self, text: str, x: int, centre_y: int) -> None:
-        (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.5, 1)
-        strip = np.full((text_h + 10, text_w + 6, 3), PAPER, dtype=np.uint8)
-        cv2.putText(strip, text, (3, text_h + 3), FONT, 0.5, INK, 1, cv2.LINE_AA)
-        rotated = cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
-        y0 = max(0, centre_y - rotated.shape[0] // 2)
-        rows = min(rotated.shape[0], self.image.shape[0] - y0)
-        self.image[y0 : y0 + rows, x : x + rotated.shape[1]] = rotated[:rows]
-
-    def _clipped(self) -> np.ndarray:
-        """A copy of the image to draw on, so strokes outside the plot area can be cut off."""
-        return self.image.copy()
-
-    def _paste(self, drawn: np.ndarray) -> None:
-        left, top, width, height = self.plot
-        inside = np.s_[top + 1 : top + height, left + 1 : left + width]
-        self.image[inside] = drawn[inside]
-
-    def _inside(self, point: np.ndarray) -> bool:
-        left, top, width, height = self.plot
-        return bool(np.all(np.isfinite(point))) and left <= point[0] <= left + width and top <= point[1] <= top + height
+@styled
+def render_speed(data: RunData) -> Figure:
+    figure = new_figure(*CHART_PX)
+    ax = figure.add_subplot()
+    path = data.frame.path
+    ax.plot(path.s_m, path.speed_limit_mps, color=LIMIT, lw=1.6, label="RDDF speed limit")
+    ax.plot(path.s_m, path.speed_mps, color=PROFILE, lw=1.6, label="course speed profile (limit, turns, braking)")
+    if data.nav is not None:
+        ax.plot(*_forward(data.nav, data.nav.speed_mps), color=NAV, lw=0.8, label="navigation estimate")
+    if data.truth is not None:
+        ax.plot(*_forward(data.truth, data.truth.speed_mps), color=TRUE, lw=1.6, label="true speed")
+    drive = data.summary.get("drive") or {}
+    note = (
+        f"mean {drive.get('mean_speed_mps', 0):.2f} m/s against an allowed mean of "
+        f"{drive.get('allowed_mean_speed_mps', 0):.2f} m/s (ratio {drive.get('speed_ratio', 0):.2f}) "
+        "over the part driven"
+        if "mean_speed_mps" in drive
+        else ""
+    )
+    _along_course(ax, data, "speed along the course", "speed (m/s)", note)
+    top = max(float(path.speed_limit_mps.max()), *(float(t.speed_mps.max()) for t in _tracks(data)))
+    ax.set_ylim(0.0, 1.15 * top)
+    ax.legend(loc="upper right", ncols=4)  # one row, in the headroom above the data
+    return figure
 
 
-def _tick_label(value: float) -> str:
-    if value != 0 and (abs(value) >= 1e5 or abs(value) < 1e-3):
-        return f"{value:.0e}"
-    return f"{value:.10g}" if abs(value - round(value)) > 1e-9 else f"{round(value)}"
+@styled
+def render_cross_track(data: RunData) -> Figure:
+    figure = new_figure(CHART_PX[0], 2 * CHART_PX[1])
+    offset, tracking = figure.subplots(2, 1, sharex=True)
+    _offset_panel(offset, data)
+    _tracking_panel(tracking, data)
+    return figure
+
+
+def _offset_panel(ax: Axes, data: RunData) -> None:
+    frame = data.frame
+    s = frame.s_m
+    half = frame.half_width_at(s)
+    ax.fill_between(s, -half, half, color=CORRIDOR_FILL, label="corridor", lw=0)
+    ax.plot(s, half, s, -half, color=CORRIDOR_EDGE, lw=0.8)
+    if data.obstacles:
+        east = np.array([o.east_m for o in data.obstacles])
+        north = np.array([o.north_m for o in data.obstacles])
+        radius = np.array([o.footprint_radius_m() for o in data.obstacles])
+        obstacle_s, obstacle_d = frame.locate(east, north)
+        ax.vlines(
+            obstacle_s,
+            obstacle_d - radius,
+            obstacle_d + radius,
+            colors=OBSTACLE,
+            lw=5,
+            label="obstacle across the course (scenario)",
+        )
+    if data.nav is not None:
+        ax.plot(*_forward(data.nav, data.nav.d_m), color=NAV, lw=0.8, label="navigation estimate")
+    if data.truth is not None:
+        ax.plot(*_forward(data.truth, data.truth.d_m), color=TRUE, lw=1.6, label="true position")
+    _along_course(ax, data, "offset from the course centre line", "offset, left positive (m)", "")
+    ax.set_ylim(-1.1 * float(half.max()), 1.1 * float(half.max()))
+    # Above the panel, beside its title: inside, it would cover the corridor's edge.
+    ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), ncols=4, frameon=False, borderaxespad=0.2)
+
+
+def _tracking_panel(ax: Axes, data: RunData) -> None:
+    track = data.truth or data.nav
+    errors = _path_errors(track, data.paths) if track is not None else np.zeros(0)
+    finite = errors[np.isfinite(errors)]
+    if track is not None:
+        label = "true position" if track is data.truth else "navigation estimate"
+        ax.plot(*_forward(track, errors), color=TRUE, lw=1.6, label=label)
+        ax.legend(loc="upper right")
+    rms = float(np.sqrt(np.mean(finite**2))) if len(finite) else 0.0
+    note = f"RMS {rms:.2f} m, max {finite.max():.2f} m, over {len(finite)} samples at 10 Hz" if len(finite) else ""
+    _along_course(
+        ax, data, "distance from the newest planned path (what control tracks)", "cross-track error (m)", note
+    )
+    ax.set_ylim(0.0, max(0.5, 1.2 * float(finite.max())) if len(finite) else 1.0)
+
+
+def _along_course(ax: Axes, data: RunData, title: str, y_label: str, note: str) -> None:
+    """Title on the left, what the numbers say on the right, station on x."""
+    ax.set_xlim(0.0, data.frame.length_m)
+    ax.set_title(title, loc="left", fontsize=12)
+    ax.set_title(note, loc="right", fontsize=9)
+    ax.set_xlabel(STATION)
+    ax.set_ylabel(y_label)
+
+
+def _tracks(data: RunData) -> list[Track]:
+    return [track for track in (data.truth, data.nav) if track is not None and len(track)]
+
+
+def _forward(track: Track, values: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(station, value) with a gap wherever the station goes back (a reversal or a restart), so
+    the line never scribbles backwards over itself."""
+    values = np.asarray(values, dtype=float).copy()
+    back = np.concatenate([[False], np.diff(track.s_m) < -0.5])
+    values[back] = np.nan
+    return track.s_m, values
+
+
+def _path_errors(track: Track, paths: list[tuple[float, FloatArray]]) -> FloatArray:
+    """Per track sample, the distance to the newest planned path published before it (NaN
+    before the first)."""
+    errors = np.full(len(track), np.nan)
+    if not paths:
+        return errors
+    times = np.array([t for t, _points in paths])
+    newest = np.searchsorted(times, track.t_s, side="right") - 1
+    for k in np.flatnonzero(newest >= 0):
+        points = paths[newest[k]][1]
+        errors[k] = _distance_to_polyline(points, track.east_m[k], track.north_m[k])
+    return errors
+
+
+def _distance_to_polyline(points: FloatArray, east: float, north: float) -> float:
+    start, step = points[:-1], np.diff(points, axis=0)
+    length2 = np.maximum(np.einsum("ij,ij->i", step, step), 1e-12)
+    along = np.clip(np.einsum("ij,ij->i", np.array([east, north]) - start, step) / length2, 0.0, 1.0)
+    nearest = start + along[:, None] * step
+    return float(np.min(np.hypot(nearest[:, 0] - east, nearest[:, 1] - north)))
+
+
+# -- module timing -------------------------------------------------------------------------------
+
+COLUMNS = ("CPU %", "loop (Hz)", "heartbeats", "overruns", "restarts", "rejected", "outputs (Hz)")
+
+
+@styled
+def render_timing(data: RunData) -> Figure:
+    """Per module: jitter (median to 95th percentile bar, maximum marker) on a log axis, and
+    beside it the mean CPU (% of one core, children included), loop rate, heartbeats, overruns,
+    restarts, rejects and output rates, row by row."""
+    modules = list(data.modules.values())
+    rows = max(1, len(modules))
+    figure = new_figure(CHART_PX[0], 200 + 30 * rows)
+    bars, table = figure.subplots(1, 2, sharey=True, width_ratios=[1.0, 1.6])
+    _jitter_bars(bars, modules)
+    bars.set_ylim(0.0, rows)
+    _timing_table(table, modules, rows)
+    figure.suptitle(
+        f"module timing: {len(modules)} module{'s' if len(modules) != 1 else ''} over {data.duration_s:.0f} s "
+        "(CPU: mean % of one core, children included)",
+        x=0.01,
+        ha="left",
+    )
+    return figure
+
+
+def _jitter_bars(ax: Axes, modules: list[Any]) -> None:
+    jitter = [np.array(timing.jitter_ms) for timing in modules]
+    rows = max(1, len(modules))
+    centres = rows - np.arange(len(modules)) - 0.5  # the first module on top
+    stats = np.array([np.percentile(j, [50, 95, 100]) if len(j) else [np.nan] * 3 for j in jitter]).reshape(-1, 3)
+    low, high, top = np.maximum(stats, 0.01).T  # the log axis starts at 0.01 ms
+    if modules:
+        ax.barh(
+            centres,
+            high - low,
+            left=low,
+            height=0.6,
+            color=JITTER,
+            edgecolor=INK,
+            lw=0.6,
+            label="median to 95th percentile",
+        )
+        # Unclipped: a module that never ran late has its maximum on the axis' left edge.
+        ax.scatter(top, centres, s=30, color=TRUE, edgecolors=INK, lw=0.6, zorder=3, clip_on=False, label="maximum")
+        ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncols=2, frameon=False)
+    worst = max((float(j.max()) for j in jitter if len(j)), default=1.0)
+    ax.set_xscale("log")
+    ax.set_xlim(0.01, 10 ** np.ceil(np.log10(max(worst, 0.1) * 1.5)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _pos: f"{value:g}"))  # 0.01, not 10^-2
+    ax.set_yticks(centres if modules else [0.5], [t.module for t in modules] or ["(no heartbeats recorded)"])
+    ax.tick_params(axis="y", length=0)
+    ax.grid(axis="y", visible=False)
+    ax.set_xlabel("activation jitter: how late each periodic task ran, worst per 1 s heartbeat (ms, log scale)")
+
+
+def _timing_table(ax: Axes, modules: list[Any], rows: int) -> None:
+    """One row of figures beside each module's bar (the axes share y), the headings above. Plain
+    texts, not a matplotlib table: its cells cost more to lay out than the rest of the chart."""
+    ax.axis("off")
+    cells = [_timing_cells(timing) for timing in modules] or [["-"] * len(COLUMNS)]
+    # Each column's share of the width follows its longest text, in characters.
+    longest = np.array([max(len(text) for text in column) + 3 for column in zip(COLUMNS, *cells, strict=True)])
+    starts = np.concatenate([[0.0], np.cumsum(longest)[:-1]]) / longest.sum()
+    for x, heading in zip(starts, COLUMNS, strict=True):
+        # A fixed distance above the rows, beside the bars' legend: the layout makes room for it.
+        ax.annotate(
+            heading,
+            (x, 1.0),
+            xycoords="axes fraction",
+            xytext=(0, 6),
+            textcoords="offset points",
+            fontsize=9,
+            fontweight="bold",
+        )
+    place = ax.get_yaxis_transform()  # x across the axes, y in rows
+    for y, row in zip(rows - np.arange(len(cells)) - 0.5, cells, strict=True):
+        for x, text in zip(starts, row, strict=True):
+            ax.text(x, y, text, transform=place, va="center", fontsize=9)
+
+
+def _timing_cells(timing: Any) -> list[str]:
+    loop_hz = 1e9 / timing.loop_period_ns if timing.loop_period_ns else 0.0
+    outputs = sorted(timing.outputs_hz.items(), key=lambda item: -item[1])
+    shown = ", ".join(f"{channel} {hz:.3g}" for channel, hz in outputs[:MAX_OUTPUTS])
+    shown += f" +{len(outputs) - MAX_OUTPUTS}" if len(outputs) > MAX_OUTPUTS else ""
+    cpu = timing.mean_cpu_pct
+    return [
+        f"{cpu:.1f}" if cpu is not None else "-",
+        f"{loop_hz:.0f}" if loop_hz else "-",
+        str(timing.heartbeats),
+        str(timing.overruns),
+        str(timing.restarts),
+        str(timing.rx_rejected),
+        shown or "-",
+    ]

@@ -6,11 +6,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import pytest
 
 from tests.brain.rddf_samples import rddf_text, real_rddf_params, waypoints_at
 from tests.conftest import ROOT
+from tests.rascal.plot_checks import assert_png, assert_svg, svg_texts
 
 COURSE = waypoints_at([(0.0, 0.0), (120.0, 0.0), (120.0, 80.0), (40.0, 80.0)], speed_mph=[25.0, 15.0, 25.0, 0.0])
 
@@ -62,11 +62,21 @@ def test_info_on_a_missing_file_exits_2(tmp_path: Path) -> None:
     assert "nowhere.rddf" in result.stderr
 
 
-def test_plot_writes_a_png_that_fits_the_size(course_file: Path, tmp_path: Path) -> None:
-    output = tmp_path / "course.png"
-    result = rascal("rddf", "plot", course_file, "-o", output, "--size-px", "900")
-    assert result.returncode == 0, result.stderr
-    assert output.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    image = cv2.imread(str(output))
-    assert image is not None and max(image.shape[:2]) <= 900 and min(image.shape[:2]) > 100
-    assert len({tuple(pixel) for pixel in image.reshape(-1, 3)[::97]}) > 10  # drawn, not blank
+def test_plot_writes_png_or_svg_that_fits_the_size(course_file: Path, tmp_path: Path) -> None:
+    for name in ("course.png", "course.svg"):
+        output = tmp_path / name
+        result = rascal("rddf", "plot", course_file, "-o", output, "--size-px", "900")
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.startswith(f"wrote {output} (") and result.stderr == ""
+    image = assert_png(tmp_path / "course.png")
+    assert max(image.shape[:2]) <= 900
+    assert "START" in svg_texts(assert_svg(tmp_path / "course.svg"))
+
+
+def test_plot_to_an_unknown_format_or_place_exits_2(course_file: Path, tmp_path: Path) -> None:
+    for output, reason in (
+        (tmp_path / "course.bmpx", "name it .png, .svg or .pdf"),
+        (tmp_path / "no" / "c.png", "c.png"),
+    ):
+        result = rascal("rddf", "plot", course_file, "-o", output)
+        assert result.returncode == 2 and reason in result.stderr and "Traceback" not in result.stderr

@@ -1,7 +1,8 @@
 """The run report: from a recorded drive (run.mcap + summary.json) to five images that show what
 happened where it happened: the track's pixels lie on the course where the vehicle drove, in the
 colour of its speed; the hazard the brain mapped is red on the course map; the speed chart's true
-speed is a flat line at the speed driven; `rascal report RUN_DIR` rebuilds them."""
+speed is a flat line at the speed driven; every image is written as PNG and SVG, and no text
+covers another; `rascal report RUN_DIR` rebuilds them."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import json
 import math
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 from rich.console import Console
@@ -18,16 +18,30 @@ from brain.course_config import load_course
 from brain.fusion.snapshot import encode_snapshot
 from brain.grid import GridWindow
 from brain.planning.frame import CorridorFrame
-from brain.rddf_cli import Canvas, speed_colors
 from protocol import channels
 from protocol.messages import ActuatorCommand, ModuleStatus, PathPoint, SimTruth, VehicleState
 from protocol.messages import Path as PlannedPath
 from rascal.cli import main
 from rascal.deployment import load_deployment
-from rascal.report import CHART_SIZE, JITTER, TRUE, build_report, report_run
+from rascal.plotting import SPEED_CMAP, speed_norm
+from rascal.report import build_report, report_run
+from rascal.report_chart import CHART_PX, JITTER, TRUE, render_cross_track, render_speed, render_timing
 from rascal.report_data import read_run
-from rascal.report_track import HAZARD
+from rascal.report_track import HAZARD, render_final_map, render_track
+from tests.rascal.plot_checks import (
+    assert_png,
+    assert_svg,
+    bgr,
+    data_pixels,
+    overlapping,
+    png_of,
+    svg_texts,
+    text_boxes,
+)
 from tests.rascal.test_recording import make_recording
+
+# A figure too small for its texts still draws, with this warning: the layout gave up.
+pytestmark = pytest.mark.filterwarnings("error:constrained_layout not applied")
 
 T0_NS = 1_700_000_000_000_000_000
 # About 320 m: east, then north-east; 25 mph limit, 40 ft boundary; one rock on the way.
@@ -111,56 +125,71 @@ def run_dir(tmp_path: Path) -> Path:
     return run
 
 
-def _colour_pixels(image: np.ndarray, colour: tuple[int, int, int], tolerance: int = 12) -> np.ndarray:
-    """(row, column) of every pixel within ``tolerance`` of ``colour`` (BGR) in each channel."""
-    return np.argwhere(np.all(np.abs(image.astype(int) - np.array(colour)) <= tolerance, axis=-1))
+def _colour_pixels(image: np.ndarray, colour: str, tolerance: int = 12) -> np.ndarray:
+    """(row, column) of every pixel within ``tolerance`` of ``colour`` in each channel."""
+    return np.argwhere(np.all(np.abs(image.astype(int) - bgr(colour)) <= tolerance, axis=-1))
 
 
-def test_the_report_draws_the_drive_where_it_happened(run_dir: Path) -> None:
+def test_the_report_writes_every_image_as_png_and_svg(run_dir: Path) -> None:
     report = build_report(run_dir)
     assert set(report.images) == {"track", "map", "speed", "cross_track", "timing"}
     # Each path's input, measured 60 ms before the path was logged, to the first command after it,
     # published 1 ms before it was logged 3 us after the path (the recording's stamps): 59 ms.
     assert report.latency_ms["p50"] == report.latency_ms["p99"] == 59.0
     assert report.latency_ms["samples"] == DRIVE_S * 100 // 20
-    images = {name: cv2.imread(str(path)) for name, path in report.images.items()}
-    assert all(image is not None for image in images.values())
-    data = read_run(run_dir)
+    for name, (png, svg) in report.images.items():
+        assert (png.name, svg.name) == (f"{name}.png", f"{name}.svg")
+        assert_png(png)
+        assert_svg(svg)
+    texts = svg_texts(assert_svg(report.images["track"][1]))
+    assert "START" in texts and "FINISH" in texts and "east (m)" in texts, "the SVG keeps its labels as text"
 
-    # The course map: every track sample lies on a pixel of the speed's colour.
-    track = images["track"]
-    canvas = Canvas(data.course.corridor.bounds_m(), 1600)
-    assert track.shape == canvas.image.shape
-    expected = speed_colors(np.array([SPEED_MPS]), float(data.course.speed_limit_mps.max()))[0].astype(int)
+
+def test_the_course_map_draws_the_drive_where_it_happened(run_dir: Path) -> None:
+    data = read_run(run_dir)
+    figure = render_track(data, "a run")
+    ax = figure.axes[0]
+    track = png_of(figure)
+    assert max(track.shape[:2]) <= 1600
+    assert ax.get_aspect() == 1.0, "a metre is as long east as north"
+    # Every track sample lies on a pixel of its speed's colour.
     truth = data.truth
     assert truth is not None and len(truth) == DRIVE_S * 10
-    pixels = np.round(canvas.pixels(truth.east_m, truth.north_m)).astype(int)
+    expected = bgr(SPEED_CMAP(speed_norm(float(data.course.speed_limit_mps.max()))(SPEED_MPS)))
+    pixels = data_pixels(figure, ax, truth.east_m, truth.north_m)
     on_track = [np.abs(track[y, x].astype(int) - expected).max() <= 40 for x, y in pixels[5:-5:10]]
     assert np.mean(on_track) >= 0.9, "the track is drawn where the vehicle drove, in its speed's colour"
-    hazard_x, hazard_y = np.round(canvas.pixels(*data.frame.to_enu(*HAZARD_AT))).astype(int)
+    ((hazard_x, hazard_y),) = data_pixels(figure, ax, *data.frame.to_enu(*HAZARD_AT))
     b, _g, r = track[hazard_y, hazard_x].astype(int)
     assert r - b > 80, "the hazard the brain mapped is red on the course map"
-    start_far = canvas.pixels(*data.frame.to_enu(300.0, -8.0)).round().astype(int)
-    assert (track[start_far[1], start_far[0]] != expected).any(), "no track where the vehicle never went"
+    ((far_x, far_y),) = data_pixels(figure, ax, *data.frame.to_enu(300.0, -8.0))
+    assert np.abs(track[far_y, far_x].astype(int) - expected).max() > 40, "no track where the vehicle never went"
+    assert overlapping(text_boxes(figure)) == [], "no text over another"
 
+
+def test_the_charts_show_speed_offset_and_timing(run_dir: Path) -> None:
+    data = read_run(run_dir)
     # The final map: its hazard cells are red.
-    assert len(_colour_pixels(images["map"], HAZARD, 30)) > 50
+    final = render_final_map(data, "a run")
+    assert final is not None and len(_colour_pixels(png_of(final), HAZARD, 30)) > 50
 
     # Speed: the true speed is a flat line over the two thirds of the course driven.
-    speed = images["speed"]
-    assert speed.shape[:2] == (CHART_SIZE[1], CHART_SIZE[0])
+    figure = render_speed(data)
+    speed = png_of(figure)
+    assert speed.shape[:2] == (CHART_PX[1], CHART_PX[0])
     red = _colour_pixels(speed, TRUE)
     row = np.bincount(red[:, 0]).argmax()
     line = red[np.abs(red[:, 0] - row) <= 2]
     assert len(line) >= 0.8 * len(red) and len(line) > 500, "one flat line (and the legend's swatch)"
-    assert 0.45 * CHART_SIZE[0] < np.ptp(line[:, 1]) < 0.75 * CHART_SIZE[0]
+    (left, _), (right, _) = data_pixels(figure, figure.axes[0], [2.0, 2.0 + SPEED_MPS * DRIVE_S], [0.0, 0.0])
+    assert abs(np.ptp(line[:, 1]) - (right - left)) < 0.05 * (right - left), "from where it started to where it got"
 
     # Cross-track: the weave is in the top panel and the distance to the path in the bottom one.
-    cross = images["cross_track"]
-    assert cross.shape[:2] == (2 * CHART_SIZE[1], CHART_SIZE[0])
-    weave = _colour_pixels(cross[: CHART_SIZE[1]], TRUE)
+    cross = png_of(render_cross_track(data))
+    assert cross.shape[:2] == (2 * CHART_PX[1], CHART_PX[0])
+    weave = _colour_pixels(cross[: CHART_PX[1]], TRUE)
     assert len(weave) > 500 and np.ptp(weave[:, 0]) > 40, "a 1.5 m weave moves the line up and down"
-    assert len(_colour_pixels(cross[CHART_SIZE[1] :], TRUE)) > 500
+    assert len(_colour_pixels(cross[CHART_PX[1] :], TRUE)) > 500
     assert (
         data.paths
         and data.nav is not None
@@ -168,19 +197,22 @@ def test_the_report_draws_the_drive_where_it_happened(run_dir: Path) -> None:
     )
 
     # Timing: one row (sim), its jitter bar drawn.
-    timing = images["timing"]
-    assert timing.shape[1] == CHART_SIZE[0] and len(_colour_pixels(timing, JITTER, 5)) > 100
+    timing_figure = render_timing(data)
+    timing = png_of(timing_figure)
+    assert timing.shape[1] == CHART_PX[0] and len(_colour_pixels(timing, JITTER, 5)) > 100
     assert data.modules["sim"].heartbeats == DRIVE_S and data.modules["sim"].jitter_ms[-1] == pytest.approx(2.95)
+    for chart in (final, figure, timing_figure):
+        assert overlapping(text_boxes(chart)) == [], "no text over another"
 
 
 def test_rascal_report_rebuilds_the_images(run_dir: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["report", str(run_dir)]) == 0
     out = capsys.readouterr().out
-    assert "track.png" in out and "timing.png" in out and "62.0 % of 327 m" in out
-    for image in (run_dir / "report").glob("*.png"):
+    assert "track, map" in out and "(.png, .svg)" in out and "62.0 % of 327 m" in out
+    for image in (run_dir / "report").iterdir():
         image.unlink()
     assert main(["report", str(run_dir), "--deployment", str(run_dir.parents[1] / "deploy.toml")]) == 0
-    assert len(list((run_dir / "report").glob("*.png"))) == 5
+    assert len(list((run_dir / "report").glob("*.png"))) == len(list((run_dir / "report").glob("*.svg"))) == 5
 
 
 def test_what_is_not_a_run_gets_a_clear_error(tmp_path: Path, run_dir: Path, capsys: pytest.CaptureFixture) -> None:
@@ -209,5 +241,5 @@ def test_a_run_without_the_simulator_or_a_map_still_gets_its_report(run_dir: Pat
     report = build_report(run_dir)
     assert set(report.images) == {"track", "speed", "cross_track", "timing"}, "no map without a snapshot"
     assert report.drive.startswith("not finished: course 327 m")
-    cross = cv2.imread(str(report.images["cross_track"]))
-    assert len(_colour_pixels(cross[CHART_SIZE[1] :], TRUE)) > 500, "the estimate's distance from the path"
+    cross = assert_png(report.images["cross_track"][0])
+    assert len(_colour_pixels(cross[CHART_PX[1] :], TRUE)) > 500, "the estimate's distance from the path"
