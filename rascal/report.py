@@ -27,7 +27,7 @@ from rich.console import Console
 
 from rascal.deployment import Deployment, DeploymentError, load_deployment
 from rascal.latency import summarise
-from rascal.report_data import ReportError, read_run
+from rascal.report_data import ReportError, drive_line, read_run
 
 REPORT_DIR = "report"
 
@@ -36,22 +36,25 @@ REPORT_DIR = "report"
 class Report:
     directory: Path
     images: dict[str, list[Path]]  # name -> its files (PNG, SVG)
-    drive: str  # the drive in one line (rascal/report_track.py: drive_line)
+    drive: str  # the drive in one line (rascal/report_data.py: drive_line)
     latency_ms: dict[str, float | int]  # measurement to actuator: p50, p99, max, samples (rascal/latency.py)
 
     def names(self) -> str:
         return f"{', '.join(self.images)} (.png, .svg)"
 
 
-def build_report(run_dir: Path, deployment: Deployment | None = None) -> Report:
-    """Read the run and write its images to ``run_dir/report/``."""
+def build_report(run_dir: Path, deployment: Deployment | None = None, images: bool = True) -> Report:
+    """Read the run and write its images to ``run_dir/report/`` (none without ``images``: the
+    drive line and the latency only)."""
+    data = read_run(run_dir, deployment)
+    if not images:
+        return Report(run_dir / REPORT_DIR, {}, drive_line(data), summarise(data.latency_ms))
     # Imported here: every `rascal` command builds the parser from this module, and matplotlib
     # costs half a second to import.
     from rascal.plotting import save_figure
     from rascal.report_chart import render_cross_track, render_speed, render_timing
-    from rascal.report_track import drive_line, render_final_map, render_track
+    from rascal.report_track import render_final_map, render_track
 
-    data = read_run(run_dir, deployment)
     title = f"run {run_dir.name}: deployment {data.deployment.name}"
     figures = {
         "track": render_track(data, title),
@@ -66,18 +69,21 @@ def build_report(run_dir: Path, deployment: Deployment | None = None) -> Report:
     return Report(directory, written, drive_line(data), summarise(data.latency_ms))
 
 
-def report_run(run_dir: Path, deployment: Deployment, console: Console) -> Report | None:
+def report_run(run_dir: Path, deployment: Deployment, console: Console, images: bool = True) -> Report | None:
     """The end of ``rascal run``: build the report and say where it is. A report that cannot be
     made is reported, never raised: the run and its recording are what matter."""
     try:
-        report = build_report(run_dir, deployment)
+        report = build_report(run_dir, deployment, images)
     except (ReportError, ValueError, OSError) as exc:
         console.print(f"no report: {exc}", markup=False, highlight=False)
         return None
     except Exception as exc:  # a report bug must not turn a good run into a failed one
         console.print(f"no report: {type(exc).__name__}: {exc} (rascal report {run_dir} to retry)", markup=False)
         return None
-    console.print(f"report: {report.directory}/ {report.names()}", markup=False)
+    if report.images:
+        console.print(f"report: {report.directory}/ {report.names()}", markup=False)
+    else:
+        console.print(f"report images not drawn (rascal report {run_dir} draws them)", markup=False)
     return report
 
 

@@ -30,7 +30,7 @@ from rascal.plotting import (
     speed_colorbar,
     styled,
 )
-from rascal.report_data import RunData, Track
+from rascal.report_data import RunData, Track, drive_line
 
 HAZARD = "#c83c28"
 UNKNOWN = "#cdcdcd"
@@ -143,31 +143,6 @@ def render_final_map(data: RunData, title: str) -> Figure | None:
     ax.legend(handles=legend if seen else [legend[0], *legend[2:]], loc="best", framealpha=0.9)
     freeze_map(figure, ax)
     return figure
-
-
-def drive_line(data: RunData) -> str:
-    """The drive in one line: the referee's measures when the run has them."""
-    drive = data.summary.get("drive") or {}
-    finished = drive.get("finished", data.summary.get("finished"))
-    parts = [
-        f"{'finished' if finished else 'not finished'}: "
-        + (
-            f"{100 * drive['completion']:.1f} % of {drive.get('route_length_m', data.frame.length_m):.0f} m"
-            if "completion" in drive
-            else f"course {data.frame.length_m:.0f} m"
-        )
-        + f" in {drive.get('time_s', data.duration_s):.0f} s"
-    ]
-    for key, text in (
-        ("mean_speed_mps", "mean {:.1f} m/s"),
-        ("collisions", "collisions {}"),
-        ("corridor_exits", "corridor exits {}"),
-        ("hazard_entries", "ditch/berm entries {}"),
-        ("min_clearance_m", "min clearance {:.2f} m"),
-    ):
-        if drive.get(key) is not None:
-            parts.append(text.format(drive[key]))
-    return ", ".join(parts)
 
 
 # -- pieces -------------------------------------------------------------------------------------

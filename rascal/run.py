@@ -266,8 +266,10 @@ def run(
     duration_s: float | None = None,
     console: Console | None = None,
     view_port: int | None = None,
+    images: bool = True,
 ) -> tuple[int, Path]:
-    """Run this host's modules until the course is done, ``duration_s`` or a signal."""
+    """Run this host's modules until the course is done, ``duration_s`` or a signal; then the
+    report (its images only with ``images``: drawing them takes seconds a run batch can spare)."""
     if console is None:
         console = Console()
         console.width = max(console.width, 140)  # piped (make demo, logs): still one line per module
@@ -283,7 +285,7 @@ def run(
         console.print(f"live view: http://127.0.0.1:{view_port}/")
     runtime.run(supervisor)
     console.print(f"run {'finished the course' if supervisor.finished else 'ended'}; logs and summary in {run_dir}/")
-    report = report_run(run_dir, deployment, console)
+    report = report_run(run_dir, deployment, console, images)
     if report is not None and report.latency_ms:
         # Read back from the recording, so it lands in the summary after the run.
         summary_path = run_dir / "summary.json"
@@ -338,6 +340,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         type=cpu_list,
         help="run the supervisor and every module on these CPUs only, e.g. 0 or 0,2-3 (does the stack fit?)",
     )
+    parser.add_argument(
+        "--no-images",
+        action="store_true",
+        help="summarise the run without drawing the report images (rascal report RUN_DIR draws them later)",
+    )
     args = parser.parse_args(argv)
     try:
         deployment = load_deployment(args.deployment)
@@ -352,5 +359,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.sched_setaffinity(0, args.cpus)  # the modules inherit it
         except (OSError, AttributeError) as exc:
             parser.error(f"--cpus: cannot confine this process to CPUs {sorted(args.cpus)}: {exc}")
-    status, _ = run(deployment, host, args.runs_dir, args.duration, view_port=args.view_port if args.view else None)
+    view_port = args.view_port if args.view else None
+    status, _ = run(deployment, host, args.runs_dir, args.duration, view_port=view_port, images=not args.no_images)
     return status

@@ -156,6 +156,7 @@ class Heard:
     delivered: Counter[tuple[int, str]] = field(default_factory=Counter)  # (source id, channel)
     summary: dict[str, Any] = field(default_factory=dict)
     run: subprocess.Popen[bytes] | None = None  # `rascal run`: a test may end it early (SIGTERM)
+    run_dir: Path | None = None  # the run's directory, once it has ended
 
     def subscribe(self) -> None:
         def on(channel: str, handler: Callable[[Any, Envelope], None]) -> None:
@@ -224,11 +225,18 @@ class Heard:
 
 @contextmanager
 def drive(
-    tmp_path: Path, bus_url: str, key_file: Path, deploy: Path, duration_s: float = 240.0, cpus: str | None = None
+    tmp_path: Path,
+    bus_url: str,
+    key_file: Path,
+    deploy: Path,
+    duration_s: float = 240.0,
+    cpus: str | None = None,
+    images: bool = False,
 ) -> Iterator[Heard]:
     """`rascal run` on ``deploy`` (on the CPUs ``cpus`` names only, if given); the ``with`` body
     runs while the stack drives, then the run is awaited (it ends at the end of the course, or
-    after ``duration_s``) and its summary read."""
+    after ``duration_s``) and its summary read. The report's images are drawn only with
+    ``images`` (seconds a run that most tests do not look at)."""
     runs = tmp_path / "runs"
     log_path = tmp_path / "run.log"
     command = [
@@ -242,6 +250,7 @@ def drive(
         "--runs-dir",
         str(runs),
         *(("--cpus", cpus) if cpus is not None else ()),
+        *(() if images else ("--no-images",)),
     ]
     with log_path.open("wb") as log:
         supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
@@ -258,6 +267,7 @@ def drive(
         supervisor.wait(timeout=60)
     assert supervisor.returncode == 0, heard.tail("rascal run failed")
     (run_dir,) = runs.iterdir()
+    heard.run_dir = run_dir
     heard.summary = json.loads((run_dir / "summary.json").read_text())
     print(json.dumps(heard.summary.get("drive")))
 

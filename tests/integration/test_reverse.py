@@ -46,3 +46,6 @@ def test_the_vehicle_backs_out_of_a_dead_end_and_drives_round(bus_url: str, key_
     assert measures["finished"], stack.tail("the drive did not finish")
     assert measures["collisions"] == 0 and measures["corridor_exits"] == 0, stack.tail("collision or exit")
     assert stack.summary["health_events"].get("brain:backing_up", 0) >= 1
+    # Run with --no-images: summarised, not drawn.
+    assert stack.summary["latency_ms"]["obstacle_to_actuator"]["samples"] > 0
+    assert stack.run_dir is not None and not (stack.run_dir / "report").exists()

@@ -22,9 +22,16 @@ WASH = ("hazard", {"name": "wash", "kind": "ditch", "at_m": 170.0, "length_m": 2
 
 def test_the_stack_finds_the_way_round_the_wash(bus_url: str, key_file: Path, tmp_path: Path) -> None:
     deploy = write_deployment(tmp_path, bus_url, RDDF, scenario(7, WASH))
-    with drive(tmp_path, bus_url, key_file, deploy, duration_s=200.0) as stack:
+    with drive(tmp_path, bus_url, key_file, deploy, duration_s=200.0, images=True) as stack:
         stack.wait_for_progress(200.0, 200.0)
     measures = stack.drive
     assert measures["finished"], stack.tail("the drive did not finish")
     assert measures["hazard_entries"] == 0, stack.tail("a wheel went into the wash")
     assert measures["collisions"] == 0 and measures["corridor_exits"] == 0
+    # The end of every run: its report, drawn (the other drives skip the images) and summarised.
+    assert stack.run_dir is not None
+    drawn = sorted(path.name for path in (stack.run_dir / "report").iterdir())
+    assert drawn == sorted(
+        f"{name}.{kind}" for name in ("track", "map", "speed", "cross_track", "timing") for kind in ("png", "svg")
+    )
+    assert stack.summary["latency_ms"]["obstacle_to_actuator"]["samples"] > 0

@@ -215,6 +215,16 @@ def test_rascal_report_rebuilds_the_images(run_dir: Path, capsys: pytest.Capture
     assert len(list((run_dir / "report").glob("*.png"))) == len(list((run_dir / "report").glob("*.svg"))) == 5
 
 
+def test_a_report_without_images_still_summarises_the_run(run_dir: Path) -> None:
+    """`rascal run --no-images`: the drive line and the latency, and not one file drawn."""
+    bare = build_report(run_dir, images=False)
+    assert bare.images == {} and not (run_dir / "report").exists()
+    assert bare.latency_ms["p50"] == 59.0 and "62.0 % of 327 m" in bare.drive
+    console = Console(record=True, width=200)
+    assert report_run(run_dir, load_deployment(run_dir.parents[1] / "deploy.toml"), console, images=False) == bare
+    assert f"rascal report {run_dir}" in console.export_text()
+
+
 def test_what_is_not_a_run_gets_a_clear_error(tmp_path: Path, run_dir: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["report", str(tmp_path / "nothing")]) == 2
     assert "no summary.json" in capsys.readouterr().err
