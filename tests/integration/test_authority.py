@@ -146,7 +146,18 @@ def test_a_module_with_only_its_own_key_can_forge_no_command(bus_url: str, key_f
     deploy.write_text(DEPLOYMENT.format(bus=bus_url))
     runs = tmp_path / "runs"
     log = tmp_path / "run.log"
-    command = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--duration", "90", "--runs-dir", str(runs)]
+    command = [
+        sys.executable,
+        "-m",
+        "rascal.cli",
+        "run",
+        str(deploy),
+        "--duration",
+        "90",
+        "--runs-dir",
+        str(runs),
+        "--no-images",
+    ]
     with log.open("wb") as out:
         run = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
     listener = Listener(bus_url, key_file, source_id=916)

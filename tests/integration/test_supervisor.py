@@ -59,7 +59,18 @@ def test_rascal_run_restarts_killed_and_hung_modules(bus_url: str, key_file: Pat
     deploy.write_text(DEPLOYMENT.format(bus=bus_url))
     runs = tmp_path / "runs"
     log = (tmp_path / "run.log").open("wb")
-    command = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--duration", "25", "--runs-dir", str(runs)]
+    command = [
+        sys.executable,
+        "-m",
+        "rascal.cli",
+        "run",
+        str(deploy),
+        "--duration",
+        "25",
+        "--runs-dir",
+        str(runs),
+        "--no-images",
+    ]
     supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     listener = Listener(bus_url, key_file, source_id=913)
     beats: list[float] = []  # arrival times of the beacon's heartbeats

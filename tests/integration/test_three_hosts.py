@@ -44,7 +44,7 @@ CUT_MIN_SPEED_MPS = 2.0  # moving for sure; at load 45 the stack crawls at ~2 m/
 PATH_MAX_AGE_S = 0.5  # control's default; VEHICLE_STATE's (0.2 s) goes stale first
 STOPPED_MPS = 0.1
 DRIVE_TIMEOUT_S = 300.0  # the short course with start-up: 55-65 s at load 15-25, 190 s at load 45
-ENDING_TIMEOUT_S = 120.0  # after the course or Ctrl-C: pause, stop the modules, write the report
+ENDING_TIMEOUT_S = 120.0  # after the course or Ctrl-C: pause, stop the modules, summarise the run
 
 
 @pytest.fixture
@@ -72,7 +72,7 @@ class Stack:
         for host in HOSTS:
             (out / host).mkdir(parents=True)
             argv = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--host", host]
-            argv += ["--duration", str(duration_s), "--runs-dir", str(out / host)]
+            argv += ["--duration", str(duration_s), "--runs-dir", str(out / host), "--no-images"]
             with (out / f"{host}.log").open("wb") as log:
                 self.runs[host] = subprocess.Popen(
                     network.command(host, argv), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT

@@ -183,7 +183,7 @@ def test_the_live_view_in_chromium_follows_a_drive(
     deploy = write_deployment(tmp_path, bus_url)
     port = free_port()
     run_log = tmp_path / "run.log"
-    command = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--duration", "180"]
+    command = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--duration", "180", "--no-images"]
     run = subprocess.Popen(
         [*command, "--runs-dir", str(tmp_path / "runs"), "--view", "--view-port", str(port)],
         cwd=ROOT,
