@@ -26,10 +26,21 @@ def key_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return path
 
 
+def random_port(step: int = 16) -> int:
+    """A random port (a multiple of ``step``, with ``step`` ports free after it) below the range
+    the kernel hands out to sockets that bind none: an ephemeral port of any sender can then
+    never hold a port a test binds (seen: a module failing with 'Address already in use')."""
+    try:
+        first_ephemeral = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        first_ephemeral = 32768  # Linux's default
+    return random.randrange(20000, max(first_ephemeral - 256, 20000 + step), step)
+
+
 @pytest.fixture
 def bus_url(monkeypatch: pytest.MonkeyPatch) -> str:
     """A loopback multicast bus on a random port range, so tests never hear each other."""
-    port = random.randrange(20000, 60000, 16)
+    port = random_port()
     url = f"udpm://239.255.{random.randint(0, 255)}.{random.randint(1, 254)}:{port}?ttl=0"
     monkeypatch.setenv("RASCAL_BUS_URL", url)
     return url

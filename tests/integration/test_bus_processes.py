@@ -21,7 +21,7 @@ from rascal.bus import Bus
 from rascal.clock import MasterClock, SharedClock
 from rascal.timeclient import TimeClient
 from rascal.timesync import SyncState
-from tests.conftest import ROOT, Processes
+from tests.conftest import ROOT, Processes, random_port
 
 pytestmark = pytest.mark.slow
 
@@ -171,10 +171,9 @@ def test_bus_pub_reaches_a_subscriber(bus_url: str, key_file: Path) -> None:
 
 
 def test_zmq_bridge_carries_verified_messages_over_tcp(bus_url: str, key_file: Path, processes: Processes) -> None:
-    import random
 
     processes.module("beacon", "--set", "rate_hz=20")
-    endpoint = f"tcp://127.0.0.1:{random.randint(30000, 60000)}"
+    endpoint = f"tcp://127.0.0.1:{random_port(1)}"
     bridge = subprocess.Popen(
         [
             sys.executable,
@@ -209,10 +208,9 @@ def test_zmq_bridge_carries_verified_messages_over_tcp(bus_url: str, key_file: P
 
 def test_the_bus_tools_work_at_the_far_end_of_a_bridge(bus_url: str, key_file: Path, processes: Processes) -> None:
     """The far end is receive-only: the tools hear in their own time and ask the master nothing."""
-    import random
 
     processes.module("beacon", "--set", "rate_hz=20")
-    endpoint = f"127.0.0.1:{random.randint(30000, 60000)}"
+    endpoint = f"127.0.0.1:{random_port(1)}"
     bridge = subprocess.Popen(
         [sys.executable, "-m", "rascal.cli", "bus", "bridge", "--bind", f"tcp://{endpoint}", "--duration", "30"],
         cwd=ROOT,

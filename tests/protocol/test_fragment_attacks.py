@@ -33,6 +33,7 @@ from protocol.transport import MemTransport, Transport, open_transport
 from rascal import bus as bus_module
 from rascal.bus import Bus
 from rascal.clock import ManualClock, MasterClock
+from tests.conftest import random_port
 from tests.protocol.wire_samples import keyring
 
 PUBLISHER = 10
@@ -189,7 +190,7 @@ def mem_wire() -> Wire:
 def multicast_wire() -> Wire:
     # TTL 0 on 127.0.0.1: the datagrams never leave this host.
     group = f"239.255.{random.randrange(1, 255)}.{random.randrange(1, 255)}"
-    url = f"udpm://{group}:{random.randrange(20000, 60000, 16)}?ttl=0"
+    url = f"udpm://{group}:{random_port()}?ttl=0"
     clock = MasterClock()
     return Wire(Bus.open(url, source_id=VICTIM, clock=clock, keyring=keyring()), open_transport(url), clock)
 

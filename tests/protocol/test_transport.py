@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import random
 import time
 
 import pytest
@@ -13,6 +12,7 @@ from protocol.messages import Obstacle, ObstacleList, WheelSpeed
 from protocol.transport import MemTransport, UdpMulticastTransport, UrlError, open_transport
 from rascal.bus import Bus
 from rascal.clock import MasterClock
+from tests.conftest import random_port
 
 
 def test_default_url_is_loopback_multicast(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -73,7 +73,7 @@ def test_multicast_on_loopback_delivers_to_every_subscriber(bus_url: str) -> Non
 
 def test_poll_without_traffic_returns_at_once() -> None:
     bus = Bus.open(
-        f"udpm://239.255.1.1:{random.randrange(20000, 60000, 16)}?ttl=0",
+        f"udpm://239.255.1.1:{random_port()}?ttl=0",
         source_id=5,
         clock=MasterClock(),
         keyring=Keyring.generate(),
