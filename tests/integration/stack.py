@@ -223,6 +223,13 @@ class Heard:
         return self.summary["drive"]
 
 
+def rascal_run_command(deploy: Path, runs: Path, duration_s: float, *extra: str) -> list[str]:
+    """`rascal run` on ``deploy`` for at most ``duration_s``, its run directory under ``runs``,
+    without the report's images (no test but the wash test looks at them)."""
+    command = [sys.executable, "-m", "rascal.cli", "run", str(deploy), "--duration", f"{duration_s:g}"]
+    return [*command, "--runs-dir", str(runs), "--no-images", *extra]
+
+
 @contextmanager
 def drive(
     tmp_path: Path,
@@ -239,19 +246,9 @@ def drive(
     ``images`` (seconds a run that most tests do not look at)."""
     runs = tmp_path / "runs"
     log_path = tmp_path / "run.log"
-    command = [
-        sys.executable,
-        "-m",
-        "rascal.cli",
-        "run",
-        str(deploy),
-        "--duration",
-        str(duration_s),
-        "--runs-dir",
-        str(runs),
-        *(("--cpus", cpus) if cpus is not None else ()),
-        *(() if images else ("--no-images",)),
-    ]
+    command = rascal_run_command(deploy, runs, duration_s, *(("--cpus", cpus) if cpus is not None else ()))
+    if images:
+        command.remove("--no-images")
     with log_path.open("wb") as log:
         supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     heard = Heard(Listener(bus_url, key_file, source_id=LISTENER_SOURCE_ID), log_path, run=supervisor)

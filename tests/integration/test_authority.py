@@ -30,6 +30,7 @@ from rascal.deployment import load_deployment
 from rascal.timesync import SyncState
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
+from tests.integration.stack import rascal_run_command
 from tests.modules.control.short_course import RDDF, SCENARIO
 
 pytestmark = pytest.mark.slow
@@ -146,18 +147,7 @@ def test_a_module_with_only_its_own_key_can_forge_no_command(bus_url: str, key_f
     deploy.write_text(DEPLOYMENT.format(bus=bus_url))
     runs = tmp_path / "runs"
     log = tmp_path / "run.log"
-    command = [
-        sys.executable,
-        "-m",
-        "rascal.cli",
-        "run",
-        str(deploy),
-        "--duration",
-        "90",
-        "--runs-dir",
-        str(runs),
-        "--no-images",
-    ]
+    command = rascal_run_command(deploy, runs, 90)
     with log.open("wb") as out:
         run = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
     listener = Listener(bus_url, key_file, source_id=916)

@@ -17,6 +17,7 @@ from protocol.codec import Envelope
 from protocol.messages import ModuleStatus
 from tests.conftest import ROOT, env_with
 from tests.integration.listener import Listener
+from tests.integration.stack import rascal_run_command
 
 pytestmark = pytest.mark.slow
 
@@ -92,18 +93,7 @@ def test_deployment_faults_reach_only_the_module_they_name(bus_url: str, key_fil
     deploy = tmp_path / "deploy.toml"
     deploy.write_text(DEPLOYMENT.format(bus=bus_url))
     runs = tmp_path / "runs"
-    command = [
-        sys.executable,
-        "-m",
-        "rascal.cli",
-        "run",
-        str(deploy),
-        "--duration",
-        "14",
-        "--runs-dir",
-        str(runs),
-        "--no-images",
-    ]
+    command = rascal_run_command(deploy, runs, 14)
     supervisor = subprocess.Popen(command, cwd=ROOT, stdout=(tmp_path / "run.log").open("wb"), stderr=subprocess.STDOUT)
     listener = Listener(bus_url, key_file, source_id=914)
     rejected: dict[int, int] = {}

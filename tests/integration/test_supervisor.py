@@ -8,7 +8,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from protocol.codec import Envelope
 from protocol.messages import HealthEvent, ModuleStatus
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
+from tests.integration.stack import rascal_run_command
 
 pytestmark = pytest.mark.slow
 
@@ -59,18 +59,7 @@ def test_rascal_run_restarts_killed_and_hung_modules(bus_url: str, key_file: Pat
     deploy.write_text(DEPLOYMENT.format(bus=bus_url))
     runs = tmp_path / "runs"
     log = (tmp_path / "run.log").open("wb")
-    command = [
-        sys.executable,
-        "-m",
-        "rascal.cli",
-        "run",
-        str(deploy),
-        "--duration",
-        "25",
-        "--runs-dir",
-        str(runs),
-        "--no-images",
-    ]
+    command = rascal_run_command(deploy, runs, 25)
     supervisor = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     listener = Listener(bus_url, key_file, source_id=913)
     beats: list[float] = []  # arrival times of the beacon's heartbeats
