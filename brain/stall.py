@@ -17,14 +17,29 @@ Sans-IO: feed ``update`` once a planning cycle; it returns the events to report.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 
-from protocol.messages import Severity
+from protocol.messages import Path, Severity
 
 STANDING_MPS = 0.1  # the issue's stall: below 0.1 m/s
 MOVING_M = 1.0  # driven this far from where it stood: moving again
 BACKUPS_PER_PLACE = 3
 PLACE_M = 6.0  # stands this close to where a back-up started are the same place (a back-up is 4 m)
+
+
+def leads_on(path: Path, east_m: float, north_m: float) -> bool:
+    """Whether ``path`` takes a vehicle standing at (east, north) anywhere: on from its point
+    nearest the vehicle, it reaches MOVING_M away and asks for a speed on the way. A path that
+    ends at the nose (a partial candidate or a kept path run out against a wall) is no way ahead,
+    whatever mode made it."""
+    points = path.points
+    away = [math.hypot(point.east_m - east_m, point.north_m - north_m) for point in points]
+    nearest = min(range(len(points)), key=away.__getitem__, default=0)
+    for k in range(nearest, len(points)):
+        if away[k] >= MOVING_M:
+            return any(point.speed_mps >= STANDING_MPS for point in points[nearest:k])
+    return False
 
 
 class Standing(enum.Enum):

@@ -25,7 +25,7 @@ from brain.fusion.fusion import HazardFusion
 from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
 from brain.planning.backup import BackUp, BackUpSettings, FloatArray, Trail, back_up
 from brain.planning.planner import PlanMode, Planner, PlanResult
-from brain.stall import STANDING_MPS, StallWatch, Standing
+from brain.stall import STANDING_MPS, StallWatch, Standing, leads_on
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import (
@@ -253,7 +253,8 @@ class Brain(Module):
         forbids driving: ``cost_map`` None)."""
         # A search that ends short of its goal leads only to the reachable cells nearest it.
         searched_through = plan.mode is PlanMode.SEARCH and plan.reached_goal
-        way_ahead = plan.mode in (PlanMode.KEEP, PlanMode.REPLAN) or searched_through
+        planned_on = plan.mode in (PlanMode.KEEP, PlanMode.REPLAN) or searched_through
+        way_ahead = planned_on and leads_on(plan.path, state.east_m, state.north_m)
         way_back = self.way_back(state, cost_map) if speed_mps < STANDING_MPS and cost_map is not None else None
         now = self.now_ns()
         events = self.stall.update(

@@ -3,8 +3,8 @@ operator's pause or the finish."""
 
 from __future__ import annotations
 
-from brain.stall import StallWatch, Standing
-from protocol.messages import Severity
+from brain.stall import StallWatch, Standing, leads_on
+from protocol.messages import Path, PathPoint, Severity
 
 S = 1_000_000_000
 
@@ -110,3 +110,14 @@ def test_back_ups_are_bounded_around_one_standing_place() -> None:
         run.now_ns += S // 10
         codes += [e.code for e in watch.update(run.now_ns, 0.0, 400.0, False, False, True)]
     assert codes == ["corridor_blocked", "backing_up"]
+
+
+def test_a_path_leads_on_only_if_it_asks_to_drive_a_metre_or_more_from_the_vehicle() -> None:
+    def path(*points: tuple[float, float]) -> Path:
+        return Path(1, tuple(PathPoint(east, 0.0, speed) for east, speed in points), slow_mode=True)
+
+    at_the_nose = path((0.0, 0.3), (0.5, 0.2), (0.9, 0.0))  # a partial path run out against a wall
+    assert not leads_on(at_the_nose, 0.0, 0.0)
+    assert not leads_on(path((0.0, 0.0), (3.0, 0.0)), 0.0, 0.0)  # a path that says stand
+    assert leads_on(path((0.0, 0.5), (1.5, 1.0), (4.0, 0.0)), 0.0, 0.0)
+    assert not leads_on(path((0.0, 0.5), (1.5, 1.0), (4.0, 0.0)), 3.5, 0.0)  # driven to its end
