@@ -59,6 +59,7 @@ from benchmarks.netns import (
 from benchmarks.report import Table, machine_line, print_table
 from protocol import fastpath
 from protocol.auth import Keyring
+from protocol.channels import DEFAULT_PORT_SPAN
 from protocol.transport import RECV_BUFFER_BYTES
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -83,9 +84,9 @@ RAW_GROUP = "239.255.77.68"
 RASCAL_GROUP = "239.255.77.67"
 LCM_GROUP = "239.255.76.67"
 # Every measurement gets fresh ports, so no datagram of an earlier run can reach a later one;
-# the stride covers the 16 ports rascal spreads channels over.
+# the stride covers the ports rascal spreads channels over.
 BASE_PORT = 27_000
-PORT_STRIDE = 32
+PORT_STRIDE = DEFAULT_PORT_SPAN
 
 RAW, LCM, SIGNED, UNSIGNED = "raw", "lcm", "signed", "unsigned"
 

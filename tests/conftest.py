@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from protocol.auth import Keyring, write_keyring
+from protocol.channels import DEFAULT_PORT_SPAN
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -26,7 +27,7 @@ def key_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return path
 
 
-def random_port(step: int = 16) -> int:
+def random_port(step: int = DEFAULT_PORT_SPAN) -> int:
     """A random port (a multiple of ``step``, with ``step`` ports free after it) below the range
     the kernel hands out to sockets that bind none: an ephemeral port of any sender can then
     never hold a port a test binds (seen: a module failing with 'Address already in use')."""

@@ -436,7 +436,7 @@ def tp_reassemble(datagrams: list[bytes], keys: dict[int, bytes] | None) -> list
     return out
 
 
-def tp_port(channel: str, base_port: int = 7667, span: int = 16) -> int:
+def tp_port(channel: str, base_port: int = 7667, span: int = 67) -> int:
     return base_port + zlib.crc32(channel.encode("ascii")) % span
 
 

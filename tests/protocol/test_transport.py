@@ -23,6 +23,14 @@ def test_default_url_is_loopback_multicast(monkeypatch: pytest.MonkeyPatch) -> N
     transport.close()
 
 
+def test_every_declared_channel_has_a_port_of_its_own_at_the_default_span() -> None:
+    """So a socket wakes only for the channel it subscribed to; a new channel whose name collides
+    needs another name or a larger span (the smallest collision-free one)."""
+    offsets = {channel: channels.port_offset(channel) for channel in channels.CHANNEL_TYPES}
+    shared = {offset for offset in offsets.values() if list(offsets.values()).count(offset) > 1}
+    assert not shared, {channel: offset for channel, offset in offsets.items() if offset in shared}
+
+
 def test_environment_overrides_the_default(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("RASCAL_BUS_URL", "mem://from-env")
     assert isinstance(open_transport(), MemTransport)
