@@ -92,7 +92,7 @@ class Terrain:
     window: GridWindow
     clearance_m: NDArray[np.float32]  # HazardField.clearance_m: exact, padded by one ring of cells
     inside: NDArray[np.bool_]  # corridor cells whose every point is inside by the gate's margin
-    free: NDArray[np.bool_]  # cells the cost-to-go may cross (the lattice search's free cells)
+    free: NDArray[np.bool_]  # cells a passing point may lie in: the cost-to-go's and reachability's
     weight: FloatArray  # each cell's step cost per metre, >= 1
     required_m: float  # the gate's clearance plus its half sample spacing
     spacing_m: float  # the gate's sample spacing

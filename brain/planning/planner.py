@@ -369,13 +369,29 @@ class _Cycle:
         if not window.inside(*start) or goal is None:
             return None
         point, normal, half_width = goal
-        # Thresholds at cell centres such that any point between two free centres passes the gate.
-        slack = cfg.check_spacing_m / 2.0 + res * math.sqrt(2.0) / 2.0
-        inside = self.planner.corridor.mask(window, cfg.corridor_clearance_m + slack)
-        free = inside & (self.gate.hazards.clearance_m[1:-1, 1:-1] >= cfg.clearance_m + slack)
+        # Thresholds at cell centres such that any point between two free centres passes the gate
+        # (sure), and such that a cell holding any point that passes it is in (possible): no point
+        # of a cell is further than half its diagonal from the centre, and both fields are
+        # 1-Lipschitz. Whether there is a way at all is asked of the possible cells: the sure ones
+        # close a lane a few cells wide, which a pose search threads.
+        diagonal = res * math.sqrt(2.0) / 2.0
+        corridor, clearance = self.planner.corridor, self.gate.hazards.clearance_m[1:-1, 1:-1]
+
+        def cells(slack: float) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+            inside = corridor.mask(window, cfg.corridor_clearance_m + slack)
+            return inside & (clearance >= cfg.clearance_m + slack), inside
+
+        free, inside = cells(cfg.check_spacing_m / 2.0 + diagonal)
+        possible, _ = cells(cfg.check_spacing_m / 2.0 - diagonal)
         heading = math.atan2(-normal[0], normal[1])  # the course's: the normal turned clockwise
         self._space = _SearchSpace(
-            (start[0], start[1]), point - half_width * normal, point + half_width * normal, heading, free, inside
+            (start[0], start[1]),
+            point - half_width * normal,
+            point + half_width * normal,
+            heading,
+            free,
+            inside,
+            possible,
         )
         return self._space
 
@@ -419,10 +435,10 @@ class _Cycle:
 
     def _label_way_through(self, s_end: float) -> bool:
         space = self.search_space(s_end)
-        if space is None or not space.free[space.start]:
+        if space is None or not space.possible[space.start]:
             return False
         window = self.gate.hazards.window
-        _, labels = cv2.connectedComponents(space.free.astype(np.uint8), connectivity=8)
+        _, labels = cv2.connectedComponents(space.possible.astype(np.uint8), connectivity=8)
         reach = self.cfg.search_stride * window.resolution_m
         low = np.minimum(space.goal_a, space.goal_b) - reach
         high = np.maximum(space.goal_a, space.goal_b) + reach
@@ -471,7 +487,7 @@ class _Cycle:
             gate.hazards.window,
             gate.hazards.clearance_m,
             space.inside,
-            space.free,
+            space.possible,
             self.step_weight,
             gate.clearance_m + gate.spacing_m / 2.0,
             gate.spacing_m,
@@ -641,8 +657,9 @@ class _SearchSpace:
     goal_a: FloatArray  # the goal: the corridor's cross-section from goal_a to goal_b
     goal_b: FloatArray
     goal_heading: float  # the course's heading there
-    free: NDArray[np.bool_]  # cells the search may use
+    free: NDArray[np.bool_]  # cells the lattice search may use: every point between them passes
     inside: NDArray[np.bool_]  # cells inside the corridor by its clearance plus the slack
+    possible: NDArray[np.bool_]  # cells with a point that may pass: where a way can be at all
 
 
 def _decimate(track: FloatArray, spacing_m: float) -> FloatArray:
