@@ -62,6 +62,11 @@ class PlannerConfig:
     min_partial_m: float = setting(
         10.0, "with no candidate clear for the whole horizon, one clear this far beyond the stopping distance will do"
     )
+    far_partial_m: float = setting(
+        30.0,
+        "a partial candidate whose stop is this far beyond the stopping distance is driven even with no way past "
+        "known yet: far hazards are mapped coarsely, and the map sharpens on the way",
+    )
     cost_weight: float = setting(4.0, "score per metre of path per unit of footprint-mean cost")
     offset_weight: float = setting(0.05, "score per metre of path per metre of lateral offset")
     change_weight: float = setting(0.1, "score per metre of path per metre of departure from the current path")

@@ -247,16 +247,20 @@ class _Cycle:
                 return faster
             return self.publish(current.path_id, PlanMode.KEEP, points, s, slow=False)
         conflict = min(self.s0 + verdict.first_failure_m, s_end)
-        min_length = self.speed**2 / (2.0 * cfg.max_decel_mps2) + cfg.min_partial_m
+        braking_m = self.speed**2 / (2.0 * cfg.max_decel_mps2)
+        min_length = braking_m + cfg.min_partial_m
         choice = choose(self.frame, self.gate, cfg, base, self.s0, s_end, conflict, self.speed, True, min_length)
         counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
         if choice.partial and not cfg.allow_partial:
             choice = dataclasses.replace(choice, profile=None)
-        elif choice.partial:
-            # Only worth it if there is a way past the hazard it stops short of, and never a way
-            # out of slow mode: that takes a candidate clear all the way.
+        elif choice.partial and choice.stations_m is not None:
+            # Never a way out of slow mode: that takes a candidate clear all the way. Near its
+            # stop, only worth it if there is a way past the hazard it stops short of; a stop far
+            # off is driven towards regardless (a hazard far ahead is mapped coarsely, and a lane
+            # through it often shows only from closer), so it does not slow the vehicle yet.
+            far = float(choice.stations_m[-1]) - self.s0 >= braking_m + cfg.far_partial_m
             slow = current is not None and current.polyline is not None
-            if slow or not self.way_through(s_end) or self.search_instead(choice.stations_m, s_end):
+            if slow or (not far and (not self.way_through(s_end) or self.search_instead(choice.stations_m, s_end))):
                 choice = dataclasses.replace(choice, profile=None)
         if choice.profile is not None and choice.points is not None and choice.stations_m is not None:
             chosen = choice.stations_m

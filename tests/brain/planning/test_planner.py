@@ -280,6 +280,22 @@ def test_a_blocked_corridor_stops_short_with_the_nose_clear(method: str) -> None
     assert plan(p, grid, Pose(near_end, 0.0, 0.0, 1.0)).path.path_id != result.path.path_id
 
 
+def test_a_blockage_far_ahead_is_driven_towards_at_speed_until_it_is_near() -> None:
+    """A wall across the corridor 70 m ahead (as far hazards often look before a lane through them
+    is mapped): the vehicle drives on at speed towards a stop short of it, not in slow mode; once
+    the stop is within the stopping distance plus ``far_partial_m``, it searches (slowly)."""
+    p = planner()
+    grid = field(east=120.0).box(150.0, -15.0, 151.0, 15.0)
+    far = plan(p, grid, Pose(80.0, 0.0, 0.0, 9.0))
+    points = path_points(far.path)
+    assert far.mode is PlanMode.REPLAN and far.partial and not far.slow_mode
+    assert points[:, 2].max() > 8.0 and points[-1, 2] == 0.0
+    assert_safe(points, grid)
+    assert points[-1, 0] + 2.1 - 0.4 <= 150.0 - CONFIG.clearance_m + 1e-6
+    near = plan(planner(), grid, Pose(110.0, 0.0, 0.0, 9.0))
+    assert near.mode is PlanMode.SEARCH and near.slow_mode
+
+
 def test_a_vehicle_already_too_close_to_a_hazard_stands_still() -> None:
     p = planner()
     grid = field().disc(111.0, 0.5, 0.4)
