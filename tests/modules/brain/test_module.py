@@ -73,6 +73,9 @@ def test_a_stereo_report_is_planned_on_at_once_and_the_grid_waits() -> None:
     # median, not the worst, so one scheduling hiccup on a loaded 2-core CI machine cannot fail it.
     assert sorted(delays)[len(delays) // 2] < 0.04, delays
     assert between == [8]  # one path per report, none from the grid in between
+    # Open ground, no search: the heartbeat's p99 of cycles without one is over them all.
+    assert len(brain.plain_cycles_ms) == len(brain.cycles_ms) > 0
+    assert "without a search" in brain.status_detail()
 
 
 def test_a_back_up_goes_straight_back_behind_a_vehicle_without_a_trail_and_stops_short_of_a_hazard() -> None:
