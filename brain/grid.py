@@ -10,9 +10,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+
+class Sides(NamedTuple):
+    """One flag per edge of a window, in the order its arrays are padded: rows, then columns."""
+
+    south: bool = False
+    north: bool = False
+    west: bool = False
+    east: bool = False
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,25 @@ class GridWindow:
         rows, cols = np.mgrid[0 : self.rows, 0 : self.cols]
         return self.centre_of(rows, cols)
 
+    def crop(self, low_east_m: float, low_north_m: float, high_east_m: float, high_north_m: float) -> Crop | None:
+        """The cells meeting a box, as a window of their own on this one's lattice (None when no
+        cell does); its cut edges are those inside this window."""
+        (row_lo, row_hi), (col_lo, col_hi) = self.cell_of([low_east_m, high_east_m], [low_north_m, high_north_m])
+        rows = slice(max(int(row_lo), 0), min(int(row_hi) + 1, self.rows))
+        cols = slice(max(int(col_lo), 0), min(int(col_hi) + 1, self.cols))
+        if rows.start >= rows.stop or cols.start >= cols.stop:
+            return None
+        res = self.resolution_m
+        window = GridWindow(
+            self.origin_east_m + cols.start * res,
+            self.origin_north_m + rows.start * res,
+            res,
+            rows.stop - rows.start,
+            cols.stop - cols.start,
+        )
+        cut = Sides(rows.start > 0, rows.stop < self.rows, cols.start > 0, cols.stop < self.cols)
+        return Crop(window, rows, cols, cut)
+
     def shift_to(self, other: GridWindow) -> tuple[int, int]:
         """Whole-cell offset (d_row, d_col) of ``other``'s origin from this one's; both windows
         must share resolution and lattice."""
@@ -76,6 +105,15 @@ class GridWindow:
         if abs(d_col - round(d_col)) > 1e-6 or abs(d_row - round(d_row)) > 1e-6:
             raise ValueError("windows are not on the same cell lattice")
         return round(d_row), round(d_col)
+
+
+class Crop(NamedTuple):
+    """Part of a window: the part as a window, its rows and columns there, and which edges were cut."""
+
+    window: GridWindow
+    rows: slice
+    cols: slice
+    cut: Sides
 
 
 def roll_into(values: NDArray, old: GridWindow, new: GridWindow, fill: float) -> NDArray:

@@ -138,6 +138,7 @@ class PlannerConfig:
     faster_min_saving_s: float = setting(
         0.3, "a candidate replaces the kept path if it drives the horizon this much sooner"
     )
+    faster_retry_m: float = setting(3.0, "...and, with none found, is looked for again this much further on")
 
     def __post_init__(self) -> None:
         if self.search_method not in SEARCH_METHODS:
@@ -209,6 +210,13 @@ class PlannerConfig:
     def corridor_clearance_m(self) -> float:
         """Least distance from the path to the corridor's edge."""
         return self.half_width_m + self.corridor_margin_m
+
+    def map_reach_m(self, top_speed_mps: float) -> float:
+        """How far from the corridor a map cell can still change a plan: within the gate's clearance
+        and the search's room, where a caution cell still slows ``top_speed_mps``, or the search
+        goal's margin from the window's edge."""
+        slowing = max(0.0, top_speed_mps - self.near_hazard_speed_mps) / self.hazard_speed_gain_mps_per_m
+        return max(self.clearance_m + max(slowing, self.search_room_m), self.goal_margin_m)
 
     @property
     def turning_radius_m(self) -> float:

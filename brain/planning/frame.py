@@ -93,6 +93,18 @@ class CorridorFrame:
         normal = self._normal_at(index, np.clip(fraction, 0.0, 1.0))
         return centre_e[:, None] + normal[:, None, 0] * d, centre_n[:, None] + normal[:, None, 1] * d
 
+    def band_box(self, s_from_m: float, s_to_m: float, margin_m: float) -> tuple[float, float, float, float]:
+        """(min east, min north, max east, max north) of a box holding every point within the
+        corridor plus ``margin_m`` between two stations: the centre path there, widened by the
+        widest half width and the furthest rounding cut (the RDDF's line is that far off it)."""
+        first, last = (int(i) for i in self._segment_of(np.array([s_from_m, s_to_m]))[0])
+        ends = np.column_stack(self.to_enu(np.array([s_from_m, s_to_m]), np.zeros(2)))
+        points = np.vstack([ends, self.points[first + 1 : last + 1]])
+        vertices = slice(first, last + 2)
+        radius = float(np.max(self.path.half_width_m[vertices]) + np.max(self.cut_m[vertices])) + margin_m
+        low, high = points.min(axis=0) - radius, points.max(axis=0) + radius
+        return float(low[0]), float(low[1]), float(high[0]), float(high[1])
+
     def heading_at(self, s_m: ArrayLike) -> FloatArray:
         """Direction of travel of the frame (perpendicular to its interpolated normal), radians from east."""
         index, fraction = self._segment_of(np.asarray(s_m, dtype=float))

@@ -12,18 +12,25 @@ Fusion hands over a `GridWindow` with two float arrays of its shape: ``hazard_pr
   which only the speed profile uses: exact too, since it decides how fast the vehicle passes
   things and a coarser grid's pessimism (half a metre at 0.4 m cells) slows it by metres per second.
 
-Outside the window nothing is known: no lethal cells, no cost.
+Outside the window nothing is known: no lethal cells, no cost. A window cut out of a larger map
+(`GridWindow.crop`) can name its cut edges as ``walls``: what lies beyond them was not looked at,
+so they count as a lethal ring just outside the window and nothing may pass near them (or beyond).
 """
 
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from brain.grid import GridWindow
+from brain.grid import GridWindow, Sides
 
 FloatArray = NDArray[np.float64]
+Box = tuple[float, float, float, float]  # min east, min north, max east, max north
+Boxes = tuple[Box, ...]
+NO_WALLS = Sides()
 
 
 class HazardField:
@@ -37,6 +44,7 @@ class HazardField:
         footprint_m: float,
         cost_cap: float,
         caution_probability: float,
+        walls: Sides = NO_WALLS,
     ) -> None:
         hazard = np.asarray(hazard_probability)
         cost_array = np.asarray(cost)
@@ -53,11 +61,12 @@ class HazardField:
             raise ValueError("footprint, cost cap and caution probability must be positive")
         self.window = window
         self.lethal = np.isposinf(cost_array)
-        self.any_lethal = bool(self.lethal.any())
+        self.any_lethal = bool(self.lethal.any()) or any(walls)
         res = window.resolution_m
-        # Ring of free cells around the window, so the field is exact one cell beyond it too.
-        padded = np.pad(self.lethal, 1, constant_values=False)
-        self.clearance_m = _distance_to(padded, res)
+        # A ring of cells around the window (free, or lethal along walls), so the field is exact one
+        # cell beyond it too.
+        self.clearance_m = _distance_to(_ringed(self.lethal, walls), res)
+        self._lethal_boxes = _marked_boxes(self.lethal, window, walls)
         capped = np.minimum(cost_array, cost_cap).astype(np.float32)
         side = 2 * round(footprint_m / res) + 1
         self.footprint_cost = cv2.boxFilter(
@@ -68,21 +77,22 @@ class HazardField:
         likely = hazard >= caution_probability
         self.any_caution = self.any_lethal or bool(likely.any())
         if (likely & ~self.lethal).any():
-            self._caution_m = _distance_to(np.pad(self.lethal | likely, 1, constant_values=False), res)
+            self._caution_m = _distance_to(_ringed(self.lethal | likely, walls), res)
+            self._caution_boxes = _marked_boxes(self.lethal | likely, window, walls)
         else:
-            self._caution_m = self.clearance_m
+            self._caution_m, self._caution_boxes = self.clearance_m, self._lethal_boxes
 
     def clearance_bound(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
         """A lower bound on each point's distance to the nearest lethal cell centre.
 
         The distance function is 1-Lipschitz, so each of the four cell centres around a point gives
         ``field(q) - |p - q|``; the best of them is exact at centres and loses at most a
-        cell diagonal between them. Beyond the padded ring, the distance to the box of all cell
-        centres bounds it.
+        cell diagonal between them. Beyond the padded ring, the distance to a box round all lethal
+        cell centres (and one along each wall) bounds it.
         """
         if not self.any_lethal:
             return np.full(np.broadcast(np.asarray(east_m), np.asarray(north_m)).shape, np.inf)
-        return _bound(self.clearance_m, self.window, east_m, north_m)
+        return _bound(self.clearance_m, self.window, self._lethal_boxes, east_m, north_m)
 
     def cost_at(self, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
         """Footprint-mean cost of the cells containing the points (0 outside the window)."""
@@ -96,11 +106,14 @@ class HazardField:
         as `clearance_bound` is to lethal ones."""
         if not self.any_caution:
             return np.full(np.broadcast(np.asarray(east_m), np.asarray(north_m)).shape, np.inf)
-        return _bound(self._caution_m, self.window, east_m, north_m)
+        return _bound(self._caution_m, self.window, self._caution_boxes, east_m, north_m)
 
 
-def _bound(field_m: NDArray[np.float32], w: GridWindow, east_m: ArrayLike, north_m: ArrayLike) -> FloatArray:
-    """`HazardField.clearance_bound` on a distance field padded by one ring of cells around ``w``."""
+def _bound(
+    field_m: NDArray[np.float32], w: GridWindow, marked: Boxes, east_m: ArrayLike, north_m: ArrayLike
+) -> FloatArray:
+    """`HazardField.clearance_bound` on a distance field padded by one ring of cells around ``w``,
+    whose marked cell centres lie in the boxes ``marked``."""
     east, north = np.broadcast_arrays(np.asarray(east_m, dtype=float), np.asarray(north_m, dtype=float))
     res = w.resolution_m
     # Fractional index into the padded field, whose cell (1, 1) is the window's cell (0, 0).
@@ -117,19 +130,45 @@ def _bound(field_m: NDArray[np.float32], w: GridWindow, east_m: ArrayLike, north
     np.maximum(best, field[flat + 1] - res * np.hypot(1.0 - fu, fv), out=best)
     np.maximum(best, field[flat + cols] - res * np.hypot(fu, 1.0 - fv), out=best)
     np.maximum(best, field[flat + cols + 1] - res * np.hypot(1.0 - fu, 1.0 - fv), out=best)
-    outside = _distance_outside(w, east, north)
-    return np.where(block, np.maximum(best, outside), outside)
+    return np.where(block, best, _distance_to_boxes(marked, east, north))
 
 
-def _distance_outside(window: GridWindow, east: FloatArray, north: FloatArray) -> FloatArray:
-    """Distance from points to the box of all cell centres (0 inside it): no cell is nearer."""
-    half = window.resolution_m / 2.0
-    low_e, low_n = window.origin_east_m + half, window.origin_north_m + half
-    high_e = window.origin_east_m + window.cols * window.resolution_m - half
-    high_n = window.origin_north_m + window.rows * window.resolution_m - half
-    de = np.maximum(np.maximum(low_e - east, east - high_e), 0.0)
-    dn = np.maximum(np.maximum(low_n - north, north - high_n), 0.0)
-    return np.hypot(de, dn)
+def _marked_boxes(mask: NDArray[np.bool_], w: GridWindow, walls: Sides) -> Boxes:
+    """Boxes holding every marked cell centre: one round the window's marked cells, and for each
+    wall all that lies past its ring (the ring's centres half a cell outside the window): nothing
+    past a wall is clear."""
+    res, half, inf = w.resolution_m, w.resolution_m / 2.0, math.inf
+    west, south = w.origin_east_m - half, w.origin_north_m - half
+    east, north = w.origin_east_m + w.cols * res + half, w.origin_north_m + w.rows * res + half
+    boxes: list[Box] = []
+    if mask.any():
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        low_e, low_n = w.centre_of(rows[0], cols[0])
+        high_e, high_n = w.centre_of(rows[-1], cols[-1])
+        boxes.append((float(low_e), float(low_n), float(high_e), float(high_n)))
+    past = ((west, -inf, east, south), (west, north, east, inf), (-inf, south, west, north), (east, south, inf, north))
+    boxes.extend(box for walled, box in zip(walls, past, strict=True) if walled)
+    return tuple(boxes)
+
+
+def _distance_to_boxes(boxes: Boxes, east: FloatArray, north: FloatArray) -> FloatArray:
+    """Distance from points to the nearest of the boxes (inf when there is none)."""
+    distance = np.full(east.shape, np.inf)
+    for low_e, low_n, high_e, high_n in boxes:
+        de = np.maximum(np.maximum(low_e - east, east - high_e), 0.0)
+        dn = np.maximum(np.maximum(low_n - north, north - high_n), 0.0)
+        np.minimum(distance, np.hypot(de, dn), out=distance)
+    return distance
+
+
+def _ringed(mask: NDArray[np.bool_], walls: Sides) -> NDArray[np.bool_]:
+    """``mask`` padded by one ring of cells: marked along walls, clear elsewhere."""
+    padded = np.pad(mask, 1, constant_values=False)
+    padded[0, :] |= walls.south
+    padded[-1, :] |= walls.north
+    padded[:, 0] |= walls.west
+    padded[:, -1] |= walls.east
+    return padded
 
 
 def _distance_to(mask: NDArray[np.bool_], resolution_m: float) -> NDArray[np.float32]:

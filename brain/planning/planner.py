@@ -131,10 +131,12 @@ class Planner:
         self.config = config or PlannerConfig()
         self.frame = CorridorFrame(course_path, rounding_m=self.config.centre_rounding_m)
         self.corridor = LocalCorridor(corridor)
+        self.map_reach_m = self.config.map_reach_m(float(np.max(course_path.speed_mps)))
         self._next_id = first_path_id
         self._current: _Current | None = None
         self._station: float | None = None
         self._published: FloatArray | None = None  # the last path's points and speeds (N x 3)
+        self._faster_tried: tuple[int, float] | None = None  # kept path, station to look for a faster one again
 
     @classmethod
     def for_course(cls, course: Course, config: PlannerConfig | None = None, first_path_id: int = 1) -> Planner:
@@ -149,6 +151,7 @@ class Planner:
         self._current = None
         self._station = None
         self._published = None
+        self._faster_tried = None
 
     def plan(
         self,
@@ -171,7 +174,8 @@ class Planner:
             float(v) for v in self.frame.locate(east, north, self._station, cfg.station_behind_m, cfg.station_ahead_m)
         )
         self._station = s0
-        hazards = HazardField(window, hazard_probability, cost, cfg.clearance_m, cfg.cost_cap, cfg.caution_probability)
+        s_end = min(s0 + cfg.horizon_m, self.frame.length_m)
+        hazards = self._hazards(window, hazard_probability, cost, east, north, s0, s_end)
         gate = PathGate(
             hazards,
             self.corridor,
@@ -181,11 +185,47 @@ class Planner:
             cfg.vehicle_length_m - cfg.rear_overhang_m,
         )
         cycle = _Cycle(self, gate, east, north, yaw, speed, max_speed_mps, s0, d0)
-        s_end = min(s0 + cfg.horizon_m, self.frame.length_m)
         # A map that does not cover the vehicle says nothing about where it is: do not drive on it.
         if s_end - s0 < _MIN_PATH_M or not window.inside(*window.cell_of(east, north)):
             return cycle.stop()
         return cycle.run(s_end)
+
+    def _hazards(
+        self,
+        window: GridWindow,
+        hazard_probability: ArrayLike,
+        cost: ArrayLike,
+        east: float,
+        north: float,
+        s0: float,
+        s_end: float,
+    ) -> HazardField:
+        """The cycle's layers on the part of the map it can touch: the corridor from the vehicle to
+        the horizon (and a vehicle length on, for the nose) and round the vehicle itself, widened
+        by `map_reach_m`. The fused window is a square round the heading, most of it beside the
+        corridor; cutting that away makes the layers several times cheaper. The cut edges are walls."""
+        cfg = self.config
+        hazard, cost_array = np.asarray(hazard_probability), np.asarray(cost)
+        low_e, low_n, high_e, high_n = self.frame.band_box(s0, s_end + cfg.vehicle_length_m, self.map_reach_m)
+        around = cfg.vehicle_length_m + self.map_reach_m
+        crop = window.crop(
+            min(low_e, east - around),
+            min(low_n, north - around),
+            max(high_e, east + around),
+            max(high_n, north + around),
+        )
+        if crop is None or hazard.shape != window.shape or cost_array.shape != window.shape:
+            return HazardField(window, hazard, cost_array, cfg.clearance_m, cfg.cost_cap, cfg.caution_probability)
+        rows, cols = crop.rows, crop.cols
+        return HazardField(
+            crop.window,
+            hazard[rows, cols],
+            cost_array[rows, cols],
+            cfg.clearance_m,
+            cfg.cost_cap,
+            cfg.caution_probability,
+            walls=crop.cut,
+        )
 
     def new_path_id(self) -> int:
         """An id no path of this planner has had or will have, for a path made beside it (a back-up)."""
@@ -319,20 +359,31 @@ class _Cycle:
         near-hazard speed) is never re-planned by itself. While the kept path is slowed for a
         hazard by more than ``faster_min_gain_mps`` at least ``faster_lead_s`` ahead, candidates
         are generated as if it failed there, and the cheapest clear one replaces it if it drives
-        the horizon ``faster_min_saving_s`` sooner."""
-        cfg = self.cfg
+        the horizon ``faster_min_saving_s`` sooner. Having found none, it looks again once the
+        vehicle is ``faster_retry_m`` further on: the search costs a re-plan each time."""
+        cfg, planner = self.cfg, self.planner
+        current = planner._current
+        tried = planner._faster_tried
+        if current is not None and tried is not None and tried[0] == current.path_id and self.s0 < tried[1]:
+            return None
         near = self.near_cap(points)
         slowed = np.flatnonzero(near < self.frame.speed_at(s) - cfg.faster_min_gain_mps)
         if len(slowed) == 0 or s[slowed[0]] - self.s0 < cfg.faster_lead_s * max(self.speed, cfg.start_speed_mps):
             return None
         slowdown_m = float(s[slowed[0]])
         choice = choose(self.frame, self.gate, cfg, base, self.s0, s_end, slowdown_m, self.speed, True, math.inf)
-        if choice.profile is None or choice.points is None or choice.stations_m is None:
+        if (
+            choice.profile is None
+            or choice.points is None
+            or choice.stations_m is None
+            or self.travel_time(choice.points, choice.stations_m)
+            > self.travel_time(points, s) - cfg.faster_min_saving_s
+        ):
+            if current is not None:
+                planner._faster_tried = (current.path_id, self.s0 + cfg.faster_retry_m)
             return None
-        if self.travel_time(choice.points, choice.stations_m) > self.travel_time(points, s) - cfg.faster_min_saving_s:
-            return None
-        path_id = self.planner._new_id()
-        self.planner._current = _Current(path_id, profile=choice.profile)
+        path_id = planner._new_id()
+        planner._current = _Current(path_id, profile=choice.profile)
         counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
         return self.publish(path_id, PlanMode.REPLAN, choice.points, choice.stations_m, slow=False, **counts)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from brain.grid import GridWindow, roll_into
+from brain.grid import GridWindow, Sides, roll_into
 
 
 def test_cells_and_centres_agree() -> None:
@@ -48,3 +48,20 @@ def test_windows_off_the_lattice_or_disjoint() -> None:
     assert np.all(roll_into(np.ones((10, 10)), a, far, fill=0.0) == 0.0)
     with pytest.raises(ValueError):
         GridWindow(0.0, 0.0, 0.0, 10, 10)
+
+
+def test_a_crop_is_the_cells_meeting_a_box_on_the_same_lattice() -> None:
+    window = GridWindow(10.0, -5.0, 0.2, rows=50, cols=100)
+    crop = window.crop(12.05, -5.5, 15.0, 0.1)
+    assert crop is not None
+    assert (crop.rows, crop.cols) == (slice(0, 26), slice(10, 26))
+    assert crop.window.shape == (26, 16)
+    assert (crop.window.origin_east_m, crop.window.origin_north_m) == pytest.approx((12.0, -5.0))
+    assert window.shift_to(crop.window) == (0, 10)
+    assert crop.cut == Sides(south=False, north=True, west=True, east=True)  # the box overhangs the south edge
+    values = np.arange(50 * 100).reshape(50, 100)
+    row, col = crop.window.cell_of(14.3, -2.1)
+    assert values[crop.rows, crop.cols][row, col] == values[window.cell_of(14.3, -2.1)]
+    everything = window.crop(0.0, -10.0, 40.0, 10.0)
+    assert everything is not None and everything.window == window and not any(everything.cut)
+    assert window.crop(40.0, 0.0, 50.0, 1.0) is None

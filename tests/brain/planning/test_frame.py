@@ -165,3 +165,25 @@ def test_rounded_corners_are_no_sharper_than_the_course_speed_assumes() -> None:
     for side in (-1.0, 1.0):
         east, north = rounded.to_enu(s, side * sure)
         assert course.corridor.distance_to_edge(east, north).min() >= -1e-6
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.0, 240.0), st.floats(1.0, 90.0), st.floats(0.0, 3.0))
+def test_the_band_box_holds_the_corridor_between_its_stations(start: float, length: float, margin: float) -> None:
+    """The frame's points up to the half width either side, and the course's own (unrounded) line
+    widened by its half width, lie in the box with the margin to spare."""
+    frame = CorridorFrame(BENT.interpolate(), rounding_m=16.0)
+    low_e, low_n, high_e, high_n = frame.band_box(start, start + length, margin)
+    s = np.linspace(start, start + length, 200)
+    for d in (-1.0, 0.0, 1.0):
+        east, north = frame.to_enu(s, d * frame.half_width_at(s))
+        assert np.all((east >= low_e + margin - 1e-9) & (east <= high_e - margin + 1e-9))
+        assert np.all((north >= low_n + margin - 1e-9) & (north <= high_n - margin + 1e-9))
+    path = BENT.interpolate()
+    inner = (path.s_m >= start) & (path.s_m <= start + length)
+    assert np.all(
+        (path.east_m[inner] >= low_e + margin + 6.0 - 1e-9) & (path.east_m[inner] <= high_e - margin - 6.0 + 1e-9)
+    )
+    assert np.all(
+        (path.north_m[inner] >= low_n + margin + 6.0 - 1e-9) & (path.north_m[inner] <= high_n - margin - 6.0 + 1e-9)
+    )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from brain.grid import GridWindow
+from brain.grid import GridWindow, Sides
 from brain.planning.hazards import HazardField
 from tests.brain.planning.scenes import Map
 
@@ -96,3 +96,44 @@ def test_bad_layers_are_refused_by_name(hazard: np.ndarray, cost: np.ndarray, me
     window = GridWindow(0.0, 0.0, 1.0, rows=4, cols=4)
     with pytest.raises(ValueError, match=message):
         HazardField(window, hazard, cost, 1.0, 10.0, 0.5)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_walls_count_as_lethal_cells_just_outside_their_edges(seed: int) -> None:
+    """A cropped window's cut edges: a ring of lethal cells half a cell outside them, nothing
+    beyond them passes, and the bound still never overstates (open edges stay open)."""
+    grid = scattered(seed)
+    window, res = grid.window, grid.window.resolution_m
+    walls = Sides(south=True, north=False, west=False, east=True)
+    hazards = HazardField(window, grid.hazard, grid.cost, 1.0, 10.0, 0.5, walls=walls)
+    ring_east = window.origin_east_m + (np.arange(-1, window.cols + 1) + 0.5) * res
+    ring_north = window.origin_north_m + (np.arange(-1, window.rows + 1) + 0.5) * res
+    south = np.column_stack([ring_east, np.full_like(ring_east, window.origin_north_m - res / 2)])
+    east_edge = window.origin_east_m + window.cols * res + res / 2
+    east = np.column_stack([np.full_like(ring_north, east_edge), ring_north])
+    marked = np.vstack([grid.lethal_centres(), south, east])
+    rng = np.random.default_rng(seed + 100)
+    points = np.column_stack([rng.uniform(-8.0, 18.0, 3000), rng.uniform(-3.0, 19.0, 3000)])
+    bound = hazards.clearance_bound(points[:, 0], points[:, 1])
+    assert np.all(bound <= exact_distance(points, marked) + 1e-5)
+    # Past a wall's ring (and along it): the strips below the south ring and right of the east one.
+    along_e = (points[:, 0] >= ring_east[0]) & (points[:, 0] <= ring_east[-1])
+    along_n = (points[:, 1] >= ring_north[0]) & (points[:, 1] <= ring_north[-1])
+    past = (along_e & (points[:, 1] <= south[0, 1])) | (along_n & (points[:, 0] >= east_edge))
+    assert past.sum() > 500
+    assert np.all(bound[past] == 0.0)
+    assert np.all(hazards.caution_clearance(points[past, 0], points[past, 1]) == 0.0)
+    # Beyond the open north edge, away from the walls and lethal cells, it is as open as ever.
+    assert hazards.clearance_bound([-2.0], [40.0])[0] > 20.0
+    unwalled = field_of(grid).clearance_bound(points[:, 0], points[:, 1])
+    assert np.all(bound <= unwalled + 1e-5)
+
+
+def test_a_window_without_lethal_cells_has_only_its_walls() -> None:
+    grid = Map(GridWindow(0.0, 0.0, 0.5, rows=10, cols=10))
+    hazards = HazardField(grid.window, grid.hazard, grid.cost, 1.0, 10.0, 0.5, walls=Sides(west=True))
+    np.testing.assert_allclose(
+        hazards.clearance_bound([0.25, 2.25, 4.75], [2.25, 2.25, 2.25]), [0.5, 2.5, 5.0], atol=1e-6
+    )
+    assert hazards.clearance_bound([-1.0], [2.0])[0] == 0.0
+    assert np.isinf(field_of(grid).clearance_bound([-1.0], [2.0])[0])

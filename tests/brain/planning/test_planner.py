@@ -8,7 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from brain.grid import GridWindow
 from brain.planning import PlanMode, Planner, PlannerConfig, PlanResult
+from brain.planning import planner as planning_planner
+from brain.planning.hazards import HazardField
 from brain.planning.speed import arc_length, curvature
 from modules.sim.vehicle import VehicleParams
 from protocol.codec import Codec, decode_body
@@ -294,6 +297,77 @@ def test_a_blockage_far_ahead_is_driven_towards_at_speed_until_it_is_near() -> N
     assert points[-1, 0] + 2.1 - 0.4 <= 150.0 - CONFIG.clearance_m + 1e-6
     near = plan(planner(), grid, Pose(110.0, 0.0, 0.0, 9.0))
     assert near.mode is PlanMode.SEARCH and near.slow_mode
+
+
+def _whole_window_layers(self: Planner, window, hazard, cost, *_: object) -> HazardField:
+    cfg = self.config
+    return HazardField(window, hazard, cost, cfg.clearance_m, cfg.cost_cap, cfg.caution_probability)
+
+
+CORNER = course_through([(0.0, 0.0), (130.0, 0.0), (200.0, 70.0)], half_width_m=6.0)
+
+
+@pytest.mark.parametrize(
+    ("course", "scene", "pose"),
+    [
+        (COURSE, lambda grid: grid.disc(140.0, 0.5, 1.0), Pose(100.0, 0.0, 0.0, 8.0)),
+        (COURSE, chicane, Pose(128.0, 0.0, 0.0, 8.0)),  # Hybrid A* through both gaps
+        (COURSE, lambda grid: grid.box(150.0, -15.0, 151.0, 15.0), Pose(110.0, 0.0, 0.0, 9.0)),  # blocked
+        (CORNER, lambda grid: grid.disc(150.0, 21.0, 1.0).disc(135.0, 3.0, 0.6), Pose(110.0, 0.0, 0.0, 8.0)),
+    ],
+)
+def test_the_layers_cover_only_the_corridor_ahead_and_plan_as_the_whole_window_does(
+    course, scene, pose: Pose, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Fusion's window is a 96 m square; the planner builds its layers on the corridor ahead
+    widened by its map reach, and plans exactly as it would on the whole window (rocks off the
+    corridor, and the cut edges' walls, change nothing)."""
+    grid = Map.around(pose.east_m + 40.0, pose.north_m, 96.0, 96.0)
+    rng = np.random.default_rng(3)
+    for east, north in zip(
+        rng.uniform(pose.east_m - 8.0, pose.east_m + 88.0, 60), rng.uniform(-48.0, 48.0, 60), strict=True
+    ):
+        if course.corridor.distance_to_edge(east, north) < -3.0:
+            grid.disc(float(east), float(north), 0.5)
+    scene(grid)
+    built: list[GridWindow] = []
+    layers = planning_planner.HazardField
+
+    def recorded(window: GridWindow, *args: object, **kwargs: object) -> HazardField:
+        built.append(window)
+        return layers(window, *args, **kwargs)
+
+    monkeypatch.setattr(planning_planner, "HazardField", recorded)
+    cropped = plan(planner(course), grid, pose)
+    assert len(built) == 1 and built[0].rows * built[0].cols < 0.6 * grid.window.rows * grid.window.cols
+    monkeypatch.setattr(Planner, "_hazards", _whole_window_layers)
+    whole = plan(planner(course), grid, pose)
+    assert cropped.mode is whole.mode and cropped.expansions == whole.expansions
+    np.testing.assert_allclose(path_points(cropped.path), path_points(whole.path), rtol=0.0, atol=1e-9)
+    assert_safe(path_points(cropped.path), grid, course)
+
+
+def test_no_faster_way_past_is_looked_for_again_until_the_vehicle_has_moved_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Rocks either side of the kept centre line slow it, and no candidate passes them faster:
+    the search for one (a re-plan's cost) runs once, then again ``faster_retry_m`` further on."""
+    p = planner()
+    grid = field()
+    kept = plan(p, grid, Pose(100.0, 0.0, 0.0, RDDF_SPEED))
+    grid.disc(150.0, 1.7, 0.5).disc(150.0, -1.7, 0.5).box(149.5, 2.4, 150.5, 15.0).box(149.5, -15.0, 150.5, -2.4)
+    calls: list[float] = []
+    real_choose = planning_planner.choose
+
+    def counted(*args: object, **kwargs: object):
+        calls.append(float(args[4]))  # the station it plans from
+        return real_choose(*args, **kwargs)
+
+    monkeypatch.setattr(planning_planner, "choose", counted)
+    for east in (101.0, 102.0, 103.0, 104.5):
+        result = plan(p, grid, Pose(east, 0.0, 0.0, RDDF_SPEED))
+        assert result.mode is PlanMode.KEEP and result.path.path_id == kept.path.path_id
+    assert calls == pytest.approx([101.0, 104.5])
 
 
 def test_a_vehicle_already_too_close_to_a_hazard_stands_still() -> None:
