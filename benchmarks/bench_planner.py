@@ -20,8 +20,9 @@ current path, then the timed cycle sees:
 - blocked: a wall across the corridor; the search finds the furthest reachable point and stops
   there (Hybrid A* and the lattice's).
 
-Every cycle includes building the map layers (clearance field, footprint costs; "layers p50" is
-that part alone). Each is timed on its own, by wall clock (``time.perf_counter``) and by this
+Every cycle includes building the map layers (clearance field, footprint costs) on the planner's
+crop of the window, the corridor ahead widened by its map reach ("layers p50" is that part alone,
+on the whole window: an upper bound). Each is timed on its own, by wall clock (``time.perf_counter``) and by this
 process's CPU time (``time.process_time``: other work on a shared machine does not inflate it,
 but OpenCV's second thread adds to it). The target is p99 <= 20 ms for a cycle without a search,
 and p99 <= 100 ms for one with the default Hybrid A* search (pure Python; slow mode only).
