@@ -69,8 +69,8 @@ class Keyring:
     signing_seed: bytes | None = None
     authority: Authority | None = None
     # Keyed hash states by key id, made once; copy() one before use.
-    keyed: dict[int, Any] = field(init=False, repr=False, compare=False)
-    fragment_keyed: dict[int, Any] = field(init=False, repr=False, compare=False)
+    keyed: dict[int, hashlib.blake2b] = field(init=False, repr=False, compare=False)
+    fragment_keyed: dict[int, hashlib.blake2b] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.active not in self.keys:
@@ -141,7 +141,7 @@ class Keyring:
         return cls({key_id: secrets.token_bytes(KEY_BYTES)}, key_id, secrets.token_bytes(SIGNING_MASTER_BYTES))
 
 
-def _tag(keyed: Any, data: bytes | memoryview) -> bytes:
+def _tag(keyed: hashlib.blake2b, data: bytes | memoryview) -> bytes:
     hasher = keyed.copy()
     hasher.update(data)
     return hasher.digest()

@@ -32,7 +32,7 @@ def needs_signature(channel: str, msg: Any) -> bool:
     """Whether a sender signs ``msg`` on ``channel``: everything on a governed channel except a
     time-sync request (which only draws a reply that no one but its sender uses)."""
     if channel == channels.TIME_SYNC:
-        return msg.kind != TimeSyncKind.REQUEST
+        return bool(msg.kind != TimeSyncKind.REQUEST)
     return channel in GOVERNED
 
 

@@ -138,7 +138,7 @@ class Codec:
         """Check framing and authenticity of one complete message; raise ProtocolError if bad."""
         if native is not None:
             # Raises bad_mac itself for a tag it found wrong: no tag is computed twice.
-            opened = native.open(data, Opened, self.verifying_macs, self.max_message_bytes)
+            opened: Opened | None = native.open(data, Opened, self.verifying_macs, self.max_message_bytes)
             if opened is not None:
                 return opened
             # Refused before the tag, or unusual (signed in the unsigned mode, not bytes): Python says which.

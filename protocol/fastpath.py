@@ -11,6 +11,7 @@ Python (the tests run both ways).
 
 from __future__ import annotations
 
+import importlib
 import os
 from types import ModuleType
 
@@ -27,7 +28,7 @@ def _load() -> ModuleType | None:
     if pure_python_asked():
         return None
     try:
-        from protocol import _fastpath
+        _fastpath = importlib.import_module("protocol._fastpath")
     except ImportError:
         return None
     return _fastpath if getattr(_fastpath, "ABI", None) == ABI else None

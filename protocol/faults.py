@@ -203,7 +203,7 @@ def header_route(datagram: bytes, first_fragments: OrderedDict[tuple[int, int], 
                 if len(first_fragments) > FRAGMENT_CHANNELS_REMEMBERED:
                     first_fragments.popitem(last=False)
             return channel, source_id
-        return (first_fragments or {}).get(key, ""), source_id
+        return (first_fragments.get(key, "") if first_fragments is not None else ""), source_id
     (source_id,) = _U16.unpack_from(datagram, 6)
     return _channel_at(datagram, 0), source_id
 

@@ -99,8 +99,8 @@ class _Fragment(NamedTuple):
     """One fragment that passed every check that needs no reassembly state."""
 
     source_id: int
-    index: int
-    count: int
+    part: int  # this fragment's index
+    part_count: int
     message_id: int
     total_len: int
     data: bytes
@@ -139,19 +139,19 @@ class Reassembler:
         partials = self._partials_of(source_id)
         partial = partials.get(message_id)
         if partial is None:
-            partial = _Partial(total_len, frag.count, now_ns)
+            partial = _Partial(total_len, frag.part_count, now_ns)
             partials[message_id] = partial
             self._ages[(source_id, message_id)] = partial
             self._enforce_source_bounds(source_id, partials, total_len)
             self._enforce_total_bound(source_id)
-        elif partial.total_len != total_len or partial.count != frag.count:
+        elif partial.total_len != total_len or partial.count != frag.part_count:
             raise ProtocolError(Reason.BAD_FRAGMENT, "fragment disagrees with earlier ones", source_id)
-        if frag.index in partial.parts:
+        if frag.part in partial.parts:
             return None  # duplicate
         if partial.received + len(frag.data) > total_len:
             self._discard(source_id, message_id)
             raise ProtocolError(Reason.BAD_FRAGMENT, f"fragments exceed the declared {total_len} B", source_id)
-        partial.parts[frag.index] = frag.data
+        partial.parts[frag.part] = frag.data
         partial.received += len(frag.data)
         if len(partial.parts) < partial.count:
             return None

@@ -124,6 +124,6 @@ if native is not None:
         def __init__(self, limits: ReplayLimits | None = None) -> None:
             super().__init__(limits or ReplayLimits())
 
-    ReplayGuard = _NativeReplayGuard  # type: ignore[assignment]
+    ReplayGuard = _NativeReplayGuard
 else:
     ReplayGuard = PythonReplayGuard

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ipaddress
 import itertools
+import math
 import os
 import select
 import socket
@@ -287,8 +288,7 @@ class ZmqSubscriberTransport(Transport):
         from protocol.codec import DEFAULT_MAX_MESSAGE_BYTES
 
         self._zmq = zmq
-        self._context = zmq.Context.instance()
-        self._socket = self._context.socket(zmq.SUB)
+        self._socket: zmq.Socket[bytes] = zmq.Context.instance().socket(zmq.SUB)
         self._socket.setsockopt(zmq.LINGER, 0)
         # A frame over the bus's largest message (no bridge sends one): libzmq hangs up on that peer, for
         # good, rather than take it in.
@@ -308,7 +308,7 @@ class ZmqSubscriberTransport(Transport):
 
     def receive(self, deliver: Deliver, timeout_s: float, budget: int) -> int:
         handled = 0
-        if not self._poller.poll(max(timeout_s, 0.0) * 1000):
+        if not self._poller.poll(math.ceil(max(timeout_s, 0.0) * 1000)):
             return 0
         while handled < budget:
             try:
