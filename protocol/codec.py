@@ -28,6 +28,7 @@ from protocol.signing import SIGNATURE_BYTES, Signed, Signer
 _new = tuple.__new__
 MAGIC = b"RB"
 VERSION = 1
+FLAGS_AT = 3  # byte offset of the flags, in a message's header and a fragment's alike
 FLAG_SIGNED = 0x01
 FLAG_FRAGMENT = 0x02
 FLAG_SIGNATURE = 0x04

@@ -28,6 +28,7 @@ from protocol.authority import GOVERNED, VERIFIED_ON_RECEIPT, Authority, needs_s
 from protocol.codec import (
     FLAG_FRAGMENT,
     FLAG_SIGNATURE,
+    FLAGS_AT,
     Codec,
     Envelope,
     Opened,
@@ -293,9 +294,12 @@ class Bus:
         clock = self.clock
         recv_local_ns = clock.from_realtime(kernel_realtime_ns) if kernel_realtime_ns else clock.local_ns()
         recv_ns = clock.to_shared(recv_local_ns)
+        if len(data) <= FLAGS_AT:  # too short to say even whether it is a fragment
+            self._count_reject(ProtocolError(Reason.TRUNCATED, f"{len(data)} B"))
+            return
         try:
             accepted = None
-            if self._receiver is not None and not self._raw_handlers and len(data) > 3 and not data[3] & FLAG_FRAGMENT:
+            if self._receiver is not None and not self._raw_handlers and not data[FLAGS_AT] & FLAG_FRAGMENT:
                 # Raises bad_mac for a wrong tag, so Python never computes it again; None leaves
                 # the datagram to Python: refused before its tag, or authentic (and checked again
                 # there, a cost only key holders can cause) but governed or of another layout.
@@ -306,9 +310,6 @@ class Bus:
                 accepted = self._accept(data, recv_ns, recv_local_ns)
                 if accepted is None:
                     return
-        except IndexError:
-            self._count_reject(ProtocolError(Reason.TRUNCATED, f"{len(data)} B"))
-            return
         except ProtocolError as error:
             self._count_reject(error)
             return
@@ -335,7 +336,7 @@ class Bus:
         """Reassemble, open, check and decode one datagram: (route, msg or None, envelope, lost),
         or None when it completes nothing or is not ours. Raw handlers see it here; ProtocolError
         for anything wrong with it. Receiver.accept is the C twin of the common case."""
-        if data[3] & FLAG_FRAGMENT:
+        if data[FLAGS_AT] & FLAG_FRAGMENT:
             whole = self.reassembler.feed(data, recv_local_ns)
             if whole is None:
                 return None

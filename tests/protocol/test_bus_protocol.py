@@ -145,6 +145,31 @@ def test_rejects_are_counted_per_source_and_reason_and_never_delivered(net: Net)
     assert channels.IMU not in sub.stats
 
 
+def test_a_datagram_too_short_for_its_flags_is_truncated(net: Net) -> None:
+    sub = net.bus(SUBSCRIBER)
+    sub.subscribe(channels.IMU, Inbox())
+    raw = net.tap()
+    for stub in (b"", b"R", b"RB\x01"):
+        raw.send(channels.IMU, stub)
+    sub.poll()
+    assert sub.rejects == Counter({(None, "truncated"): 3})
+
+
+def test_a_bug_in_our_own_handler_is_not_counted_as_a_remote_fault(net: Net) -> None:
+    """An IndexError raised by a raw handler is the handler's, and surfaces; it is not a
+    truncated datagram from the sender."""
+    sub = net.bus(SUBSCRIBER)
+
+    def faulty(*_: object) -> None:
+        raise IndexError("ours")
+
+    sub.subscribe_raw(faulty)
+    net.bus(PUBLISHER).publish(channels.IMU, IMU)
+    with pytest.raises(IndexError, match="ours"):
+        sub.poll()
+    assert sub.rejected_total() == 0
+
+
 def test_a_spoofer_with_the_wrong_key_never_gets_a_message_through(net: Net) -> None:
     """Whatever a spoofer sends (any type, any declared channel, fragmented or not, even under the
     victim's source id and key id), no handler or latest-value entry ever sees it: every datagram,
