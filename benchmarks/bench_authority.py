@@ -25,12 +25,12 @@ from protocol.authority import Authority
 from protocol.messages import ActuatorCommand
 from protocol.signing import Signed
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
 
 COMMAND = ActuatorCommand(0.35, 0.0, -0.04, "")
 CONTROL_HZ = 50.0
-SETTLED_REPLIES_HZ = 2.0  # rascal.timeclient: one exchange per 500 ms once settled
+SETTLED_REPLIES_HZ = 2.0  # rascal.runtime.timeclient: one exchange per 500 ms once settled
 UNSETTLED_REPLIES_HZ = 10.0
 ROUNDS = 7
 PER_ROUND = 400

@@ -45,9 +45,9 @@ from modules.esvs.module import Esvs
 from modules.esvs.settings import EsvsConfig
 from modules.sim.scenario import load_scenario
 from protocol.auth import Keyring
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.module import Runtime
 
 FRAMES = 6
 KILLS = 3

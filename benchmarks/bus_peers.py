@@ -29,7 +29,7 @@ from protocol.auth import Keyring
 from protocol.codec import Envelope
 from protocol.messages import Frame, Obstacle, ObstacleList, Sensor
 from protocol.transport import MAX_UDP_BYTES, RECV_BUFFER_BYTES
-from rascal.bus import Bus
+from rascal.runtime.bus import Bus
 
 OnMessage = Callable[[int], None]
 

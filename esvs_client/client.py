@@ -27,9 +27,9 @@ from protocol.messages import (
     ObstacleList,
     VehicleState,
 )
-from rascal.bus import Bus
-from rascal.clock import SharedClock
-from rascal.timeclient import TimeClient
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.timeclient import TimeClient
 
 DEFAULT_SOURCE_ID = 50
 TIME_REQUEST_PERIOD_S = 0.1

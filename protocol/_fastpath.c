@@ -2,7 +2,7 @@
  *
  * Every piece has a pure-Python twin, which stays the reference and the fallback where no
  * compiler was at hand: Mac in protocol/auth.py (hashlib), seal and open in protocol/codec.py,
- * decode in protocol/schema.py, ReplayGuard in protocol/replay.py, Receiver in rascal/bus.py
+ * decode in protocol/schema.py, ReplayGuard in protocol/replay.py, Receiver in rascal/runtime/bus.py
  * (Bus._accept). The C side only takes the common case: a well-formed, authentic message whose
  * body has exactly the layout this build declares. For anything else it returns None and the
  * caller runs the Python twin, which accepts the other layout versions or raises the precise
@@ -997,7 +997,7 @@ static PyTypeObject ReplayGuardType = {
 /* -- the whole receive path ----------------------------------------------------------------------
  * Receiver(macs_by_id, max_bytes, routes, replay, envelope_cls): one per Bus, holding what
  * the bus's receive path consults. routes maps channel -> route with attributes type_id, plan,
- * replay_exempt and governed (rascal.bus._Route); replay is a ReplayGuard of this module;
+ * replay_exempt and governed (rascal.runtime.bus._Route); replay is a ReplayGuard of this module;
  * envelope_cls has 10 fields, the last (the signature) None for every message accepted here.
  *
  * accept(data, recv_ns, recv_local_ns, check_freshness)
@@ -1114,7 +1114,7 @@ static PyObject *receiver_accept(ReceiverObject *self, PyObject *const *args, Py
     uint64_t seq = get_u64(m.p + 12);
     int64_t t_pub_ns = (int64_t)get_u64(m.p + 28);
     long long lost = 0;
-    if (!exempt) { /* the time protocol judges its own messages (rascal.bus.REPLAY_EXEMPT) */
+    if (!exempt) { /* the time protocol judges its own messages (rascal.runtime.bus.REPLAY_EXEMPT) */
         PyObject *source = PyLong_FromLong(source_id);
         key = source == NULL ? NULL : PyTuple_Pack(2, source, channel);
         Py_XDECREF(source);

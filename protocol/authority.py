@@ -22,7 +22,7 @@ from protocol.signing import PUBLIC_KEY_BYTES, Signed, Verifier, public_key_of
 OPERATOR_SOURCE_ID = 0xFFF0
 GOVERNED_CHANNELS = (channels.ACTUATOR_COMMAND, channels.PATH, channels.STOP, channels.CONFIG, channels.TIME_SYNC)
 # Every node hears every time-sync reply but uses only those echoing its own requests: the one
-# client that uses a reply verifies it (rascal/timeclient.py), not every node on receipt.
+# client that uses a reply verifies it (rascal/runtime/timeclient.py), not every node on receipt.
 VERIFIED_BY_HANDLER = frozenset({channels.TIME_SYNC})
 VERIFIED_ON_RECEIPT = frozenset(GOVERNED_CHANNELS) - VERIFIED_BY_HANDLER
 GOVERNED = frozenset(GOVERNED_CHANNELS)

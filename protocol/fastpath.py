@@ -2,7 +2,7 @@
 
 ``protocol/_fastpath.c`` tags, seals, opens, decodes and replay-checks the common case (a
 well-formed, authentic message of this build's layout) and hands everything else back to the
-Python code in auth.py, codec.py, schema.py, replay.py and rascal/bus.py, which stays the
+Python code in auth.py, codec.py, schema.py, replay.py and rascal/runtime/bus.py, which stays the
 reference; except a wrong tag, which C refuses itself (bad_mac), so that no datagram's tag is
 computed twice. ``native`` is that extension, or None where it was not
 built (no compiler at install time), is a stale build, or ``RASCAL_PURE_PYTHON=1`` asks for

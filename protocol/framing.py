@@ -11,7 +11,7 @@ nor poison a partial message. The reassembled message still carries its own MAC 
 checks. The bounds (per source and overall) remain against key holders gone mad, and in the
 unsigned mode, where fragments carry no tag, as messages carry none: with them, incomplete
 messages hold at most ``max_total_bytes`` (4 MiB) however many sources send, and each is freed
-at its timeout by the receiver's next poll (rascal.bus.Bus.poll wakes for it), whether or not
+at its timeout by the receiver's next poll (rascal.runtime.bus.Bus.poll wakes for it), whether or not
 another fragment comes.
 """
 

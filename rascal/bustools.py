@@ -35,10 +35,10 @@ from protocol.codec import Opened, decode_body, unpack_body
 from protocol.errors import ProtocolError
 from protocol.messages import ModuleStatus
 from protocol.schema import info_for_class, info_for_id, registered
-from rascal.bus import Bus, ChannelStats
-from rascal.clock import SharedClock
-from rascal.timeclient import TimeClient
-from rascal.timesync import SyncState
+from rascal.runtime.bus import Bus, ChannelStats
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.timeclient import TimeClient
+from rascal.runtime.timesync import SyncState
 
 # Below protocol.authority.OPERATOR_SOURCE_ID (0xFFF0): a tool never takes the operator's id.
 TOOL_SOURCE_IDS = (0xF000, 0xFFEF)

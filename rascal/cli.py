@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _module(argv: list[str], options: argparse.Namespace) -> int:
     """Everything after the module name belongs to the module's own parser."""
-    from rascal.launch import module_class, run_module
+    from rascal.runtime.launch import module_class, run_module
 
     if not argv:
         print("usage: rascal module NAME [--help | module options]", file=sys.stderr)
@@ -319,7 +319,7 @@ def _operator_order(args: argparse.Namespace) -> int:
     from rascal.operator_stop import describe, give_order
 
     mode = {"stop": StopMode.ESTOP, "pause": StopMode.PAUSE, "resume": StopMode.RUN}[args.command]
-    from rascal.deployment import DeploymentError, load_deployment
+    from rascal.runtime.deployment import DeploymentError, load_deployment
 
     try:
         authority = load_deployment(args.deployment).authority if args.deployment else None

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from modules.referee.measures import drove_safely
-from rascal.deployment import DEFAULT_DEPLOYMENT, LOCALHOST, load_deployment
 from rascal.run import run
+from rascal.runtime.deployment import DEFAULT_DEPLOYMENT, LOCALHOST, load_deployment
 
 DEMO_LIMIT_S = 540.0  # the course takes about six minutes on a 2-core machine
 

@@ -41,9 +41,9 @@ from protocol import channels as declared
 from protocol.auth import Keyring
 from protocol.codec import FLAG_SIGNATURE, FLAG_SIGNED, HEADER, HEADER_BYTES, body_span
 from protocol.replay import RESTART_JUMP
-from rascal.bus import Bus
 from rascal.logread import Datagram
-from rascal.timeclient import TimeClient
+from rascal.runtime.bus import Bus
+from rascal.runtime.timeclient import TimeClient
 
 TIME_REQUEST_PERIOD_S = 0.1
 DEFAULT_EXCLUDED = frozenset({declared.TIME_SYNC})

@@ -24,7 +24,7 @@ from protocol.authority import OPERATOR_SOURCE_ID, Authority
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, StopCommand, StopMode
 from rascal.bustools import tool_bus
-from rascal.timeclient import MIN_REQUEST_PERIOD_NS
+from rascal.runtime.timeclient import MIN_REQUEST_PERIOD_NS
 
 REPEAT_S = 0.2
 SYNC_POLL_S = MIN_REQUEST_PERIOD_NS / 1e9  # as often as the time client will ask: synced in tens of ms

@@ -40,7 +40,7 @@ from protocol.messages import (
     VehicleState,
 )
 from protocol.schema import describe_type, info_for_id
-from rascal.timesync import SyncState
+from rascal.runtime.timesync import SyncState
 
 RAW_ENCODING = "rascal-v1"  # message_encoding of the raw channels: whole signed messages (SPEC.md)
 JSON_ENCODING = "json"

@@ -53,10 +53,6 @@ from protocol.errors import ProtocolError
 from protocol.messages import Severity
 from protocol.schema import info_for_id
 from protocol.transport import Transport
-from rascal.bus import Bus
-from rascal.config import setting
-from rascal.launch import run_module
-from rascal.module import Module, Runtime
 from rascal.record_foxglove import FoxgloveOptions, FoxgloveTap
 from rascal.record_schema import (
     JSON_ENCODING,
@@ -68,6 +64,10 @@ from rascal.record_schema import (
     message_schema_bytes,
     raw_channel_metadata,
 )
+from rascal.runtime.bus import Bus
+from rascal.runtime.config import setting
+from rascal.runtime.launch import run_module
+from rascal.runtime.module import Module, Runtime
 
 RECORDER_SOURCE_ID = 8
 RUN_METADATA = "run"

@@ -25,9 +25,9 @@ from typing import Any
 
 from rich.console import Console
 
-from rascal.deployment import Deployment, DeploymentError, load_deployment
 from rascal.latency import summarise
 from rascal.report_data import ReportError, drive_line, read_run
+from rascal.runtime.deployment import Deployment, DeploymentError, load_deployment
 
 REPORT_DIR = "report"
 

@@ -26,9 +26,9 @@ from modules.sim.world import WorldObstacle
 from protocol import channels
 from protocol.errors import ProtocolError
 from protocol.messages import MapSnapshot, ModuleStatus
-from rascal.deployment import Deployment, load_deployment
 from rascal.latency import measurement_to_actuator_ms
 from rascal.logread import RecordingError, decode, iter_datagrams
+from rascal.runtime.deployment import Deployment, load_deployment
 
 TRACK_PERIOD_S = 0.1
 LOCATE_BATCH = 10  # track samples located along the course together (1 s: well inside locate's window)

@@ -31,10 +31,14 @@ from protocol import channels
 from protocol.auth import default_keyring, load_keyring
 from protocol.codec import Envelope
 from protocol.messages import HealthEvent, Severity, StopCommand, StopMode, VehicleState
-from rascal.bus import Bus
-from rascal.clock import SharedClock
-from rascal.cpu import CpuMeter
-from rascal.deployment import (
+from rascal.logread import RecordingError, read_metadata
+from rascal.record_twins import add_json_twins
+from rascal.recording import END_METADATA
+from rascal.report import report_run
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.cpu import CpuMeter
+from rascal.runtime.deployment import (
     DEFAULT_DEPLOYMENT,
     LOCALHOST,
     Deployment,
@@ -42,11 +46,7 @@ from rascal.deployment import (
     ModuleSpec,
     load_deployment,
 )
-from rascal.logread import RecordingError, read_metadata
-from rascal.module import Runtime
-from rascal.record_twins import add_json_twins
-from rascal.recording import END_METADATA
-from rascal.report import report_run
+from rascal.runtime.module import Runtime
 from rascal.supervisor import SUPERVISOR_SOURCE_ID, Child, Supervisor, module_state
 from rascal.view.module import viewer_spec
 

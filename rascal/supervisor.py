@@ -32,9 +32,9 @@ from protocol.auth import Keyring, write_keyring
 from protocol.authority import Authority
 from protocol.codec import Envelope
 from protocol.messages import ModuleState, ModuleStatus, Severity
-from rascal.deployment import SUPERVISOR_SOURCE_ID, Deployment, ModuleSpec
-from rascal.module import RUN_DIR_ENV, Module, Runtime
-from rascal.sdnotify import NOTIFY_SOCKET_ENV
+from rascal.runtime.deployment import SUPERVISOR_SOURCE_ID, Deployment, ModuleSpec
+from rascal.runtime.module import RUN_DIR_ENV, Module, Runtime
+from rascal.runtime.sdnotify import NOTIFY_SOCKET_ENV
 
 CHECK_PERIOD_S = 0.05
 STARTUP_GRACE_S = 15.0  # a fresh process imports numpy, OpenCV...: no heartbeat is expected before this

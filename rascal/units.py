@@ -34,10 +34,17 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from rascal.config import build_config, parse_assignments
-from rascal.deployment import SAFE_NAME, SAFE_NAME_RULE, Deployment, DeploymentError, ModuleSpec, load_deployment
-from rascal.launch import module_class
-from rascal.sdnotify import NOTIFY_SOCKET_ENV
+from rascal.runtime.config import build_config, parse_assignments
+from rascal.runtime.deployment import (
+    SAFE_NAME,
+    SAFE_NAME_RULE,
+    Deployment,
+    DeploymentError,
+    ModuleSpec,
+    load_deployment,
+)
+from rascal.runtime.launch import module_class
+from rascal.runtime.sdnotify import NOTIFY_SOCKET_ENV
 from rascal.supervisor import module_command, module_environment
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -24,7 +24,7 @@ def test_code_is_ruff_formatted() -> None:
 
 
 def test_the_type_check_passes() -> None:
-    # No cache: nothing is written into the tree, and a cold check of protocol/ takes about a second.
+    # No cache: nothing is written into the tree, and a cold check takes a few seconds.
     command = [sys.executable, "-m", "mypy", "--cache-dir", "/dev/null"]
     result = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stdout + result.stderr

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brain.grid import GridWindow
-from rascal.config import setting
+from rascal.runtime.config import setting
 
 
 @dataclass(frozen=True)

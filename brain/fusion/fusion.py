@@ -37,7 +37,7 @@ from brain.fusion.snapshot import encode_snapshot
 from brain.fusion.window import WindowPlacement
 from brain.grid import GridWindow
 from protocol.messages import Frame, GroundSweep, LaneBorders, MapSnapshot, ObstacleList, SurfaceProfile, VehicleState
-from rascal.config import setting
+from rascal.runtime.config import setting
 
 NS_PER_S = 1_000_000_000
 MAX_EXTENT_M = 50.0  # a descriptor claiming a larger object is clipped to this

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from protocol.messages import NavQuality, VehicleState
-from rascal.angles import wrap_angle
+from rascal.runtime.angles import wrap_angle
 
 
 class Pose(NamedTuple):

@@ -13,7 +13,7 @@ from dataclasses import dataclass, fields
 
 from brain.planning.hybrid import HybridSettings
 from brain.planning.pursuit import Bicycle
-from rascal.config import setting
+from rascal.runtime.config import setting
 
 SEARCH_METHODS = ("hybrid", "lattice")
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 from protocol import channels
 from protocol.messages import Frame, Obstacle, ObstacleList, Sensor
-from rascal.config import setting
-from rascal.module import Module
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module
 
 
 @dataclass(frozen=True)

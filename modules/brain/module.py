@@ -41,8 +41,8 @@ from protocol.messages import (
     SurfaceProfile,
     VehicleState,
 )
-from rascal.config import setting
-from rascal.module import Module, Runtime
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
 
 SENSOR_NAMES = {
     Sensor.LIDAR_H_LEFT: "lidar_h_left",

@@ -32,9 +32,9 @@ from modules.control.stop_latch import StopLatch, StopOrder
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, NavQuality, Path, Severity, StopCommand, StopMode, VehicleState
-from rascal.config import ConfigError, setting
-from rascal.module import Module, run_artefact
-from rascal.rtdb import Validity
+from rascal.runtime.config import ConfigError, setting
+from rascal.runtime.module import Module, run_artefact
+from rascal.runtime.rtdb import Validity
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocol.messages import PathPoint
-from rascal.angles import wrap_angle
+from rascal.runtime.angles import wrap_angle
 
 FloatArray = NDArray[np.float64]
 MIN_SEGMENT_M = 1e-3  # shorter steps are duplicates: they have no heading

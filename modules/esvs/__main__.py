@@ -1,5 +1,5 @@
 from modules.esvs import MODULE
-from rascal.launch import run_module
+from rascal.runtime.launch import run_module
 
 # Guarded: the vision workers' fork server imports the main module of a process it serves.
 if __name__ == "__main__":

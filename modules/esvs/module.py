@@ -35,9 +35,9 @@ from modules.esvs.worker import FAULTS, Inject, Process, Report, Retime, SetPara
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ConfigUpdate, LaneBorders, ModuleState, ObstacleList, Severity, VehicleState
-from rascal.config import ConfigError
-from rascal.module import Module, Runtime
-from rascal.rtdb import Validity
+from rascal.runtime.config import ConfigError
+from rascal.runtime.module import Module, Runtime
+from rascal.runtime.rtdb import Validity
 
 ACTIVATION_HISTORY = 4096  # per worker, for inter-activation statistics
 CAMERA_SILENT_S = 1.0  # no new frame for this long: the module reports itself DEGRADED

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields, replace
 
 from modules.esvs import scheduling
 from modules.esvs.vision.pipeline import VisionParams
-from rascal.config import ConfigError, parse_assignments, setting
+from rascal.runtime.config import ConfigError, parse_assignments, setting
 
 MODES = ("monolithic", "cambada")
 MIN_ROUND_S, MAX_ROUND_S = 0.033, 1.0

@@ -1,4 +1,4 @@
 from modules.health import MODULE
-from rascal.launch import run_module
+from rascal.runtime.launch import run_module
 
 run_module(MODULE)

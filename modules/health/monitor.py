@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ModuleStatus, Severity
-from rascal.config import ConfigError, setting
-from rascal.module import Module
-from rascal.rtdb import Latest
+from rascal.runtime.config import ConfigError, setting
+from rascal.runtime.module import Module
+from rascal.runtime.rtdb import Latest
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from modules.ins.model import (
     speed_hx,
     transition,
 )
-from rascal.angles import wrap_angle, wrap_angles
+from rascal.runtime.angles import wrap_angle, wrap_angles
 
 FILTERS = ("ekf", "ukf")
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rascal.angles import wrap_angle
+from rascal.runtime.angles import wrap_angle
 
 E, N, YAW, SPD, BG, SCALE, BM1, BM2, BA = range(9)
 DIM_X = 9

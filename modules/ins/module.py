@@ -18,8 +18,8 @@ from modules.ins.navigator import InsFilter
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, Severity, WheelSpeed
-from rascal.config import setting
-from rascal.module import Module, Runtime
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
 
 # Ages after which an input counts as stale in the heartbeat: a few missed samples at each rate.
 IMU_MAX_AGE_S = 0.05

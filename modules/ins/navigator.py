@@ -42,7 +42,7 @@ from modules.ins.model import (
     transition,
 )
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, VehicleState, WheelSpeed
-from rascal.angles import wrap_angle
+from rascal.runtime.angles import wrap_angle
 
 UNINITIALISED_VARIANCE = 1e12  # what state() reports before the filter has a solution
 

@@ -19,9 +19,9 @@ from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
 from protocol import channels
 from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
-from rascal.config import setting
-from rascal.module import Module, Runtime
-from rascal.rtdb import Validity
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
+from rascal.runtime.rtdb import Validity
 
 # Source ids the runner gives each lidar process (``--source-id``), and what each one is.
 SOURCE_IDS: dict[str, int] = {

@@ -38,7 +38,7 @@ import pymap3d
 from brain.corridor import WGS84, GeodeticOrigin
 from modules.sim.world import FaultKind, SensorFault, World
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, WheelSpeed
-from rascal.angles import wrap_angle
+from rascal.runtime.angles import wrap_angle
 
 STANDARD_GRAVITY_MPS2 = 9.80665  # defines the milli-g of accelerometer specifications
 # The simulated world's gravity: the vehicle model (modules/sim/vehicle.py) uses the same.

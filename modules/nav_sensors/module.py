@@ -36,8 +36,8 @@ from modules.sim.world import SensorFault
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import SimTruth
-from rascal.config import setting
-from rascal.module import Module, Runtime
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
 
 # Names in the fault schedule, also the order in which per-sensor random streams are spawned.
 SENSOR_STREAMS = ("imu", "gps", "speedometer", "magnetometer_1", "magnetometer_2")

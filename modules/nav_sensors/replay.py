@@ -34,7 +34,7 @@ from modules.sim.vehicle import VehicleParams, VehicleState, step
 from modules.sim.world import FaultKind, SensorFault
 from protocol.messages import ActuatorCommand, GpsFix, ImuSample, MagHeading, WheelSpeed
 from protocol.messages import VehicleState as NavState
-from rascal.angles import wrap_angles
+from rascal.runtime.angles import wrap_angles
 
 ORIGIN = GeodeticOrigin(35.0, -117.0, 700.0)
 STEP_NS = 10_000_000  # the simulator's 100 Hz

@@ -24,8 +24,8 @@ from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import Path as PlannedPath
 from protocol.messages import SimTruth
-from rascal.config import setting
-from rascal.module import Module, Runtime, run_artefact
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime, run_artefact
 
 SUMMARY_PERIOD_S = 1.0
 

@@ -21,8 +21,8 @@ from modules.sim.world import WorldObstacle
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, Severity, SimTruth
-from rascal.config import setting
-from rascal.module import Module
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module
 
 PARKED = ActuatorCommand(throttle=0.0, brake=1.0, steering_rad=0.0, stop_reason="not yet commanded")
 # A late tick steps the physics by the time that really passed, so simulated time stays shared

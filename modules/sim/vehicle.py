@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass, fields
 from typing import Protocol
 
-from rascal.config import setting
+from rascal.runtime.config import setting
 
 GRAVITY_MPS2 = 9.81
 _TAU = 2 * math.pi

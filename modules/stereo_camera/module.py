@@ -29,9 +29,9 @@ from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
 from protocol import channels
 from protocol.messages import SimTruth
-from rascal.config import setting
-from rascal.module import Module, Runtime
-from rascal.rtdb import Validity
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
+from rascal.runtime.rtdb import Validity
 
 TRUTH_MAX_AGE_S = 0.5  # the simulator publishes at 100 Hz: older means it stopped
 MAX_FPS = 60.0  # the Basler cameras' top rate

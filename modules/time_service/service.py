@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rascal.module import Module
+from rascal.runtime.module import Module
 
 
 @dataclass(frozen=True)

@@ -24,12 +24,12 @@ from protocol.codec import decode_body
 from protocol.errors import ProtocolError
 from protocol.schema import info_for_class
 from protocol.transport import UrlError
-from rascal.bus import Bus
 from rascal.bustools import TOOL_SOURCE_IDS
-from rascal.clock import SharedClock
-from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
 from rascal.logread import END_METADATA, Datagram, RecordingError, Scan, body_of, iter_datagrams
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
+from rascal.runtime.module import Runtime
 from rascal.view.module import HEALTH_PERIOD_S, TRAIL_PERIOD_S, Publisher, Viewer, ViewerConfig, course_of, open_outputs
 from rascal.view.server import ViewServerError
 from rascal.view.state import DRAWN_CHANNELS, ViewState

@@ -9,9 +9,9 @@ from typing import Any
 from brain.corridor import Course
 from brain.course_config import load_course
 from protocol.codec import Envelope, Opened
-from rascal.config import setting
-from rascal.deployment import Deployment, ModuleSpec
-from rascal.module import Module, Runtime
+from rascal.runtime.config import setting
+from rascal.runtime.deployment import Deployment, ModuleSpec
+from rascal.runtime.module import Module, Runtime
 from rascal.view.guard import Access
 from rascal.view.server import FrameHub, ViewServer, ViewServerError
 from rascal.view.state import DRAWN_CHANNELS, ViewState

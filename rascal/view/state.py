@@ -32,7 +32,7 @@ from protocol.messages import (
     Severity,
     VehicleState,
 )
-from rascal.bus import ChannelStats
+from rascal.runtime.bus import ChannelStats
 
 OBSTACLE_CHANNELS = (channels.OBSTACLES_LIDAR, channels.OBSTACLES_ESVS, channels.OBSTACLES_BEACON)
 DRAWN_CHANNELS = (

@@ -16,7 +16,7 @@ import pytest
 from benchmarks.bench_drive import Stopped, _raise_stopped, run_stack, seeded_deployment
 from benchmarks.leaderboard import meets_targets
 from modules.sim.scenario import load_scenario
-from rascal.deployment import load_deployment
+from rascal.runtime.deployment import load_deployment
 
 GOOD = {
     "finished": True,

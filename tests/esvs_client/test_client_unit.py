@@ -27,8 +27,8 @@ from protocol.messages import (
     VehicleState,
 )
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
 
 ROCK = Obstacle(20.9, 0.5, 1.3, 1.2, 1.2, 0.0, 0.9, 20.3)
 EDGE = LaneBorder(1, 3.0, 0.0, 0.0, 12.0, 36.0, 0.8)

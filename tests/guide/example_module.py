@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 from protocol import channels
 from protocol.messages import Frame, Obstacle, ObstacleList, Sensor
-from rascal.config import setting
-from rascal.launch import run_module
-from rascal.module import Module
+from rascal.runtime.config import setting
+from rascal.runtime.launch import run_module
+from rascal.runtime.module import Module
 
 # A real module declares its own channel in protocol/channels.py (the bus tools refuse undeclared
 # channels); the example borrows the beacon's, so it needs no edit outside the tests.

@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from protocol.auth import load_keyring
-from rascal.bus import Bus
-from rascal.clock import SharedClock
-from rascal.timeclient import TimeClient
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.timeclient import TimeClient
 
 TIME_REQUEST_PERIOD_S = 0.1
 

@@ -24,10 +24,10 @@ from protocol.authority import OPERATOR_SOURCE_ID, Authority
 from protocol.codec import Codec, Envelope
 from protocol.messages import ActuatorCommand, ModuleStatus, SimTruth, StopCommand, StopMode, TimeSync, TimeSyncKind
 from protocol.signing import Signer
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.deployment import load_deployment
-from rascal.timesync import SyncState
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.deployment import load_deployment
+from rascal.runtime.timesync import SyncState
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
 from tests.integration.stack import rascal_run_command

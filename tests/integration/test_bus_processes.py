@@ -17,10 +17,10 @@ from protocol.codec import DEFAULT_MAX_MESSAGE_BYTES, Envelope
 from protocol.messages import ModuleStatus, ObstacleList
 from protocol.transport import ZmqSubscriberTransport
 from rascal.bridge import MAX_SUBSCRIPTION_BYTES, Bridge
-from rascal.bus import Bus
-from rascal.clock import MasterClock, SharedClock
-from rascal.timeclient import TimeClient
-from rascal.timesync import SyncState
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock, SharedClock
+from rascal.runtime.timeclient import TimeClient
+from rascal.runtime.timesync import SyncState
 from tests.conftest import ROOT, Processes, random_port
 
 pytestmark = pytest.mark.slow

@@ -27,8 +27,8 @@ from protocol import channels
 from protocol.codec import Opened
 from protocol.errors import Reason
 from rascal.recording import RecordingWriter
+from rascal.runtime.timesync import SyncState, TimeSyncConfig
 from rascal.spoof import DEFAULT_SOURCE_ID
-from rascal.timesync import SyncState, TimeSyncConfig
 from tests.conftest import ROOT, Processes
 from tests.integration.stack import NS, drive, max_gap_s, rock, scenario, write_deployment
 

@@ -47,8 +47,8 @@ from protocol.auth import FRAGMENT_TAG_BYTES, TAG_BYTES, Keyring
 from protocol.codec import FLAG_FRAGMENT, FLAG_SIGNED, MAGIC, VERSION, Codec
 from protocol.framing import FRAGMENT_HEADER, FRAGMENT_HEADER_BYTES
 from protocol.transport import RECV_BUFFER_BYTES, UdpConfig
-from rascal.bus import Bus
-from rascal.clock import MasterClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from rascal.spoof import loopback_only
 from tests.conftest import ROOT
 

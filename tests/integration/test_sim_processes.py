@@ -14,9 +14,9 @@ from protocol import channels
 from protocol.auth import load_keyring
 from protocol.codec import Envelope
 from protocol.messages import SimTruth
-from rascal.bus import Bus
-from rascal.clock import SharedClock
-from rascal.timeclient import TimeClient
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
+from rascal.runtime.timeclient import TimeClient
 from tests.conftest import Processes
 
 pytestmark = pytest.mark.slow

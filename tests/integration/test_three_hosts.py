@@ -28,8 +28,8 @@ from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, SimTruth
 from protocol.transport import open_transport
-from rascal.deployment import DEFAULT_DEPLOYMENT, load_deployment
 from rascal.logread import read_metadata
+from rascal.runtime.deployment import DEFAULT_DEPLOYMENT, load_deployment
 from tests.conftest import ROOT
 from tests.integration.listener import Listener
 from tests.integration.stack import write_deployment

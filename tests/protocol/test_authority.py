@@ -22,12 +22,12 @@ from protocol.codec import FLAG_SIGNATURE, FLAG_SIGNED, Codec, body_span, signed
 from protocol.errors import ProtocolError, Reason
 from protocol.signing import SIGNATURE_BYTES, Signed, Signer, Verifier, derive_seed, public_key_of
 from protocol.transport import MemTransport, open_transport
-from rascal.bus import Bus
-from rascal.clock import ManualClock, SharedClock
 from rascal.logplay import restamp
 from rascal.logread import Datagram, decode
 from rascal.operator_stop import order_source_id
-from rascal.timeclient import MIN_REQUEST_PERIOD_NS, TimeClient, TimeMaster
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock, SharedClock
+from rascal.runtime.timeclient import MIN_REQUEST_PERIOD_NS, TimeClient, TimeMaster
 from tests.protocol.wire_samples import T0_NS
 
 CONTROL, LIDAR, TIME_SERVICE, SIM, SUPERVISOR = 40, 21, 1, 5, 9

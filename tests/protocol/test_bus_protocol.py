@@ -1,4 +1,4 @@
-"""The wire protocol end to end: rascal.bus.Bus over an in-process MemTransport hub."""
+"""The wire protocol end to end: rascal.runtime.bus.Bus over an in-process MemTransport hub."""
 
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, is_fragment
 from protocol.replay import ReplayLimits
 from protocol.schema import info_for_class
 from protocol.transport import MemTransport, open_transport
-from rascal.bus import Bus, ChannelStats
-from rascal.clock import ManualClock
-from rascal.rtdb import Validity
+from rascal.runtime.bus import Bus, ChannelStats
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.rtdb import Validity
 from tests.protocol.wire_samples import BIG_SAMPLES, CHANNEL_OF, SAMPLES, T0_NS, WRONG_KEY, keyring
 
 IMU = m.ImuSample(0.12, -0.03, 9.806, 0.001, -0.0004, 0.21)

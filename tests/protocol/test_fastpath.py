@@ -31,8 +31,8 @@ from protocol.framing import fragment
 from protocol.replay import PythonReplayGuard, ReplayGuard, ReplayLimits
 from protocol.schema import _compile_decoder, info_for_class, registered
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
 from tests.protocol.test_fuzz import Traffic
 from tests.protocol.wire_samples import BIG_SAMPLES, CHANNEL_OF, SAMPLES, T0_NS, keyring
 

@@ -23,8 +23,8 @@ from protocol.faults import (
 from protocol.framing import fragment
 from protocol.messages import Obstacle, ObstacleList, WheelSpeed
 from protocol.transport import MemTransport, UrlError, open_transport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
 from tests.protocol.wire_samples import keyring
 
 SENDER = 7

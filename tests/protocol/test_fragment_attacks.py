@@ -30,9 +30,9 @@ from protocol.errors import ProtocolError
 from protocol.fastpath import native
 from protocol.framing import FRAGMENT_HEADER, FRAGMENT_HEADER_BYTES, Reassembler, ReassemblyLimits, fragment
 from protocol.transport import MemTransport, Transport, open_transport
-from rascal import bus as bus_module
-from rascal.bus import Bus
-from rascal.clock import ManualClock, MasterClock
+from rascal.runtime import bus as bus_module
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock, MasterClock
 from tests.conftest import random_port
 from tests.protocol.wire_samples import keyring
 

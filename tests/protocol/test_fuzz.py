@@ -33,8 +33,8 @@ from protocol.errors import ProtocolError, Reason
 from protocol.framing import FRAGMENT_HEADER, FRAGMENT_HEADER_BYTES, Reassembler, fragment, is_fragment
 from protocol.schema import info_for_class, registered
 from protocol.transport import MemTransport
-from rascal.bus import MAX_REJECT_SOURCES, Bus
-from rascal.clock import ManualClock
+from rascal.runtime.bus import MAX_REJECT_SOURCES, Bus
+from rascal.runtime.clock import ManualClock
 from tests.protocol.wire_samples import BIG_SAMPLES, CHANNEL_OF, SAMPLES, T0_NS, assert_well_formed, keyring, seal
 
 SEED = 0x5EED_2005

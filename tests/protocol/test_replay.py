@@ -14,8 +14,8 @@ from protocol.auth import Keyring
 from protocol.errors import ProtocolError, Reason
 from protocol.messages import WheelSpeed
 from protocol.replay import WINDOW, ReplayGuard, ReplayLimits
-from rascal.bus import Bus
-from rascal.clock import MasterClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 
 NOW = 1_700_000_000_000_000_000
 BASE = 1_700_000_000_000_000  # a publisher's first seq: wall-clock microseconds at start

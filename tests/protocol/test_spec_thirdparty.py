@@ -576,7 +576,7 @@ def render_enums() -> str:
     import enum
 
     from protocol import messages
-    from rascal.timesync import SyncState
+    from rascal.runtime.timesync import SyncState
 
     enums = [
         value
@@ -595,7 +595,7 @@ def render_channels() -> str:
     from protocol import channels
     from protocol.schema import info_for_class
     from protocol.transport import DEFAULT_URL
-    from rascal.bus import REPLAY_EXEMPT
+    from rascal.runtime.bus import REPLAY_EXEMPT
 
     base = urlsplit(DEFAULT_URL).port
     assert base is not None
@@ -659,8 +659,8 @@ def capture(tmp_path: Path) -> Capture:
     from protocol.auth import Keyring, write_keyring
     from protocol.schema import info_for_class
     from protocol.transport import MemTransport
-    from rascal.bus import Bus
-    from rascal.clock import ManualClock
+    from rascal.runtime.bus import Bus
+    from rascal.runtime.clock import ManualClock
 
     keyring = Keyring({3: bytes(range(32)), 9: random.randbytes(32)}, active=9)
     write_keyring(tmp_path / "bus.key", keyring)
@@ -922,8 +922,8 @@ def test_forged_traffic_passes_a_live_bus(capture: Capture, schema: TpSchema) ->
     """End to end through Bus.poll: framing, MAC, replay window and freshness as SPEC.md states."""
     from protocol.auth import load_keyring
     from protocol.transport import MemTransport
-    from rascal.bus import Bus
-    from rascal.clock import ManualClock
+    from rascal.runtime.bus import Bus
+    from rascal.runtime.clock import ManualClock
 
     keys, active = tp_load_keys(capture.directory / "bus.key")
     hub = f"spec-thirdparty-live-{random.getrandbits(64):x}"
@@ -1045,8 +1045,8 @@ def test_a_third_party_command_signature_passes_an_enforcing_node(capture: Captu
     from protocol.auth import Keyring
     from protocol.authority import Authority
     from protocol.transport import MemTransport
-    from rascal.bus import Bus
-    from rascal.clock import ManualClock
+    from rascal.runtime.bus import Bus
+    from rascal.runtime.clock import ManualClock
 
     keys, active = tp_load_keys(capture.directory / "bus.key")
     master = Keyring(keys, active, random.randbytes(32))

@@ -10,8 +10,8 @@ from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import Obstacle, ObstacleList, WheelSpeed
 from protocol.transport import MemTransport, UdpMulticastTransport, UrlError, open_transport
-from rascal.bus import Bus
-from rascal.clock import MasterClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from tests.conftest import random_port
 
 

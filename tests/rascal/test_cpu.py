@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from rascal.cpu import UNKNOWN_PCT, CpuMeter, descendants, process_cpu_ns
 from rascal.run import cpu_list
+from rascal.runtime.cpu import UNKNOWN_PCT, CpuMeter, descendants, process_cpu_ns
 from rascal.supervisor import CPU_BUDGET_BEATS, CpuBooks
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc (Linux)")

@@ -34,12 +34,12 @@ from protocol.messages import (
 )
 from protocol.messages import Path as PlannedPath
 from rascal import foxglove_schemas as fx
-from rascal.bus import Bus
-from rascal.clock import MasterClock
 from rascal.record_foxglove import FoxgloveOptions
 from rascal.record_schema import JSON_ENCODING, JSON_SCHEMA_ENCODING, RAW_ENCODING
 from rascal.record_twins import add_json_twins
 from rascal.recording import RecordingWriter, course_info
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from tests.conftest import ROOT
 from tests.rascal.test_recording import _wait_for_recorder, validate
 

@@ -15,12 +15,12 @@ from protocol import channels
 from protocol.auth import Keyring, load_keyring
 from protocol.codec import Codec, Envelope
 from protocol.messages import ImuSample, Obstacle, ObstacleList, TimeSync
-from rascal.bus import Bus
 from rascal.bustools import to_jsonable
-from rascal.clock import MasterClock
 from rascal.logplay import Renumber, restamp
 from rascal.logtools import main, summarize
 from rascal.recording import RecordingWriter
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from tests.rascal.test_recording import make_recording
 
 STEP_NS = 20_000_000

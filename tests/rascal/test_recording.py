@@ -34,12 +34,12 @@ from protocol.messages import (
     Sensor,
 )
 from protocol.schema import registered
-from rascal.bus import Bus
-from rascal.clock import MasterClock
 from rascal.logread import END_METADATA, RUN_METADATA, Scan, check_sequences, iter_datagrams, read_metadata
 from rascal.record_schema import ENUM_FIELDS, JSON_SCHEMA_ENCODING, RAW_ENCODING, json_converter, json_schema
 from rascal.record_twins import add_json_twins
 from rascal.recording import RECORDER_SOURCE_ID, RecordingWriter, bus_counts
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from tests.conftest import ROOT
 
 T0_NS = 1_700_000_000_000_000_000

@@ -22,12 +22,12 @@ from protocol import channels
 from protocol.messages import ActuatorCommand, ModuleStatus, PathPoint, SimTruth, VehicleState
 from protocol.messages import Path as PlannedPath
 from rascal.cli import main
-from rascal.deployment import load_deployment
 from rascal.plotting import SPEED_CMAP, speed_norm
 from rascal.report import build_report, report_run
 from rascal.report_chart import CHART_PX, JITTER, TRUE, render_cross_track, render_speed, render_timing
 from rascal.report_data import read_run
 from rascal.report_track import HAZARD, render_final_map, render_track
+from rascal.runtime.deployment import load_deployment
 from tests.rascal.plot_checks import (
     assert_png,
     assert_svg,

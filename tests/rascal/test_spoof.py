@@ -21,9 +21,9 @@ from protocol.codec import Codec, Envelope, decode_body
 from protocol.errors import ProtocolError
 from protocol.messages import ActuatorCommand
 from protocol.replay import ReplayLimits
-from rascal.bus import Bus
-from rascal.clock import MasterClock
 from rascal.recording import RecordingWriter
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from rascal.spoof import DEFAULT_SOURCE_ID, Forger, SpoofError, fake_message, loopback_only, spoof
 from tests.conftest import ROOT
 from tests.protocol.wire_samples import keyring

@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 
 from rascal.cli import main
-from rascal.deployment import DeploymentError, load_deployment
-from rascal.sdnotify import Notifier
+from rascal.runtime.deployment import DeploymentError, load_deployment
+from rascal.runtime.sdnotify import Notifier
 from rascal.units import write_units
 from tests.conftest import ROOT
 

@@ -43,9 +43,9 @@ from protocol.messages import (
 from protocol.messages import (
     Path as PlannedPath,
 )
-from rascal.bus import Bus
-from rascal.clock import MasterClock
 from rascal.recording import RecordingWriter
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from rascal.view.guard import Access
 from rascal.view.server import FrameHub, ViewServer
 from rascal.view.state import MAX_NAMES, ViewState

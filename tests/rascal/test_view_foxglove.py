@@ -20,9 +20,9 @@ from mcap.reader import make_reader
 from brain.course_config import DEFAULT_COURSE
 from protocol import channels
 from protocol.auth import load_keyring
-from rascal.bus import Bus
-from rascal.clock import MasterClock
 from rascal.record_schema import JSON_ENCODING, JSON_SCHEMA_ENCODING
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
 from tests.rascal.test_recording import validate
 from tests.rascal.test_view import free_port, publish_drive, recording, snapshot, start, stop, vehicle
 

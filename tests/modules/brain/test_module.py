@@ -17,9 +17,9 @@ from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import Frame, NavQuality, ObstacleList, Path, Sensor, VehicleState
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.module import Runtime
 
 PLAN_PERIOD_S = 0.1
 

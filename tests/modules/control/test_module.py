@@ -26,10 +26,10 @@ from protocol.messages import (
     VehicleState,
 )
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
-from rascal.config import ConfigError
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.config import ConfigError
+from rascal.runtime.module import Runtime
 
 TICK_NS = 20_000_000
 PATH = Path(7, tuple(PathPoint(float(x), 0.0, 5.0) for x in range(0, 60)), False)

@@ -19,9 +19,9 @@ from protocol.auth import Keyring
 from protocol.codec import Envelope
 from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.module import Runtime
 
 TRUTH_PERIOD_NS = 40_000_000  # 25 Hz, one truth sample per lidar tick
 SIM_SOURCE = 90

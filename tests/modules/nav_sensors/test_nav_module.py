@@ -17,9 +17,9 @@ from protocol.auth import Keyring
 from protocol.codec import Envelope
 from protocol.messages import SimTruth
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.module import Runtime
 
 ORIGIN = GeodeticOrigin(35.0, -116.5, 700.0)
 TRUTH_PERIOD_NS = 10_000_000  # the simulator's 100 Hz

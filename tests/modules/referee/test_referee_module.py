@@ -13,9 +13,9 @@ from protocol.auth import Keyring
 from protocol.messages import Path as PlannedPath
 from protocol.messages import PathPoint, SimTruth
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
-from rascal.module import RUN_DIR_ENV, Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.module import RUN_DIR_ENV, Runtime
 
 
 class Recorder:

@@ -18,9 +18,9 @@ from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import ActuatorCommand, HealthEvent, SimTruth
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock
+from rascal.runtime.module import Runtime
 
 THROTTLE = ActuatorCommand(0.6, 0.0, 0.0)
 

@@ -29,9 +29,9 @@ from protocol.messages import (
     Severity,
     VehicleState,
 )
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.module import Runtime
 from tests.modules.esvs.framework.rings import HEIGHT, WIDTH, ring_name_fixture
 from tests.modules.esvs.framework.workers import SCENE, scene_pair
 

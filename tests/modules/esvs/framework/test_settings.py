@@ -6,7 +6,7 @@ import pytest
 
 from modules.esvs.settings import LIVE_KEYS, EsvsConfig, check_config, updated, vision_params
 from modules.esvs.vision import VisionParams
-from rascal.config import ConfigError
+from rascal.runtime.config import ConfigError
 
 
 def test_the_defaults_are_valid_and_match_rascal() -> None:

@@ -18,9 +18,9 @@ from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import SimTruth
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import ManualClock, MasterClock
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import ManualClock, MasterClock
+from rascal.runtime.module import Runtime
 from tests.modules.esvs.framework.rings import ring_name_fixture
 
 ROCK = WorldObstacle("rock", Shape.CYLINDER, 20.0, 0.5, 1.2, radius_m=0.6)

@@ -42,8 +42,8 @@ from protocol.framing import DEFAULT_MAX_DATAGRAM_BYTES, Reassembler, Reassembly
 from protocol.replay import ReplayGuard, ReplayLimits
 from protocol.schema import info_for_class, info_for_id
 from protocol.transport import Transport, open_transport
-from rascal.clock import Clock, SharedClock
-from rascal.rtdb import Latest
+from rascal.runtime.clock import Clock, SharedClock
+from rascal.runtime.rtdb import Latest
 
 M = TypeVar("M")
 _new = tuple.__new__
@@ -314,7 +314,7 @@ class Bus:
             self._count_reject(error)
             return
         route, msg, envelope, lost = accepted
-        if msg is not None:
+        if msg is not None and route is not None:  # a message is decoded only for a route
             for latest in route.latest:
                 latest.update(msg, envelope)
             for handler in route.handlers:

@@ -14,10 +14,10 @@ from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import ModuleState, ModuleStatus, ObstacleList
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.config import setting
-from rascal.module import Module, Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.config import setting
+from rascal.runtime.module import Module, Runtime
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ task is due, runs due tasks by priority, measures activation jitter and overruns
 asks the time service, and publishes a ModuleStatus heartbeat every second (with the CPU the
 process and its children used since the last). Under systemd it
 also tells the service manager it is ready and, with each heartbeat, that it is alive
-(rascal/sdnotify.py).
+(rascal/runtime/sdnotify.py).
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ from typing import Any, ClassVar
 
 from protocol import channels
 from protocol.messages import HealthEvent, ModuleState, ModuleStatus, Severity
-from rascal.bus import Bus
-from rascal.clock import Clock, MasterClock, SharedClock, SkewedLocal
-from rascal.cpu import UNKNOWN_PCT, CpuMeter
-from rascal.rtdb import Latest
-from rascal.sdnotify import Notifier
-from rascal.timeclient import TimeClient, TimeMaster
-from rascal.timesync import SyncState
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import Clock, MasterClock, SharedClock, SkewedLocal
+from rascal.runtime.cpu import UNKNOWN_PCT, CpuMeter
+from rascal.runtime.rtdb import Latest
+from rascal.runtime.sdnotify import Notifier
+from rascal.runtime.timeclient import TimeClient, TimeMaster
+from rascal.runtime.timesync import SyncState
 
 HEARTBEAT_PERIOD_S = 1.0
 # Datagrams handled per wait before due tasks run. A module slower than its inputs (starved of

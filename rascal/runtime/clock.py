@@ -10,7 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-from rascal.timesync import TimeSyncEstimator
+from rascal.runtime.timesync import TimeSyncEstimator
 
 
 class Clock(Protocol):

@@ -236,7 +236,7 @@ class TimeSyncEstimator:
         fro), and a model that rejects everything would coast on, ever more wrong, in holdover.
         Starting again from them gives a fit whose error bound spans their disagreement."""
         recent = self._recent
-        if len(recent) < recent.maxlen or not all(flag for _sample, flag in recent):
+        if len(recent) < self._cfg.step_window_samples or not all(flag for _sample, flag in recent):
             return None
         return [s for s, _ in recent]
 

@@ -11,9 +11,9 @@ from typing import Any
 
 from protocol.auth import KeyFileError, default_keyring, load_keyring
 from protocol.transport import UrlError
-from rascal.bus import Bus
-from rascal.config import ConfigError, build_config, describe, parse_assignments
-from rascal.module import Module, Runtime, make_clock
+from rascal.runtime.bus import Bus
+from rascal.runtime.config import ConfigError, build_config, describe, parse_assignments
+from rascal.runtime.module import Module, Runtime, make_clock
 
 
 def module_class(name: str) -> type[Module]:
@@ -24,7 +24,8 @@ def module_class(name: str) -> type[Module]:
         raise SystemExit(f"no module named {name!r} under modules/") from None
     if not hasattr(package, "MODULE"):
         raise SystemExit(f"modules.{name} is a library, not a runnable module")
-    return package.MODULE
+    module: type[Module] = package.MODULE
+    return module
 
 
 def argument_parser(cls: type[Module]) -> argparse.ArgumentParser:

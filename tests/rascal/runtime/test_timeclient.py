@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 
 from protocol.auth import load_keyring
-from rascal.bus import Bus
-from rascal.clock import MasterClock, SharedClock
-from rascal.timeclient import SETTLED_REQUEST_PERIOD_NS, TimeClient, TimeMaster
-from rascal.timesync import SyncState
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock, SharedClock
+from rascal.runtime.timeclient import SETTLED_REQUEST_PERIOD_NS, TimeClient, TimeMaster
+from rascal.runtime.timesync import SyncState
 
 CALL_PERIOD_S = 0.1  # as Runtime calls request()
 SETTLE_LIMIT_S = 10.0

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
+from rascal.runtime.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
 
 GOOD = """
 [deployment]

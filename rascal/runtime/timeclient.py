@@ -7,8 +7,8 @@ from collections import OrderedDict
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import TimeSync, TimeSyncKind
-from rascal.bus import Bus
-from rascal.clock import SharedClock
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import SharedClock
 
 OUTSTANDING_REQUESTS = 32
 ENCODE_SMOOTHING = 8  # the master's mean reply encoding time: an exponential mean over ~8 replies

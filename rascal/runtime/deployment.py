@@ -53,10 +53,10 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 from protocol import channels
 from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
-from rascal.config import ConfigError, build_config
-from rascal.launch import module_class
+from rascal.runtime.config import ConfigError, build_config
+from rascal.runtime.launch import module_class
 
-DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[1] / "deploy" / "localhost.toml"
+DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "localhost.toml"
 SHARED_SETTINGS = ("scenario", "course", "origin")
 LOCALHOST = "localhost"
 FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
@@ -271,7 +271,7 @@ class _Parser:
         overrides = table.get("set", {})
         if not isinstance(overrides, dict):
             raise self.fail(f"{where}.set", "expected a table of KEY = value")
-        config_fields = {f.name for f in dataclasses.fields(cls.Config)}  # type: ignore[arg-type]
+        config_fields = {f.name for f in dataclasses.fields(cls.Config)}
         values = {k: shared[k] for k in SHARED_SETTINGS if k in config_fields and shared[k] not in (None, "")}
         values = {k: str(v) for k, v in values.items()} | dict(overrides)
         try:
@@ -394,18 +394,20 @@ class _Parser:
             if required:
                 raise self.fail(key, "missing table")
             return {}
-        if not isinstance(doc[key], dict):
+        found = doc[key]
+        if not isinstance(found, dict):
             raise self.fail(key, "expected a table")
-        return doc[key]
+        return found
 
     def string(self, table: dict[str, Any], where: str, key: str, default: str | None = None) -> str:
         if key not in table:
             if default is None:
                 raise self.fail(f"{where}.{key}", "missing")
             return default
-        if not isinstance(table[key], str):
-            raise self.fail(f"{where}.{key}", f"expected a string, got {table[key]!r}")
-        return table[key]
+        value = table[key]
+        if not isinstance(value, str):
+            raise self.fail(f"{where}.{key}", f"expected a string, got {value!r}")
+        return value
 
     def integer(self, table: dict[str, Any], where: str, key: str, default: int) -> int:
         value = table.get(key, default)

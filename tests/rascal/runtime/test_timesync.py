@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rascal.timesync import SyncState, SyncStatus, TimeSyncConfig, TimeSyncEstimator
+from rascal.runtime.timesync import SyncState, SyncStatus, TimeSyncConfig, TimeSyncEstimator
 
 US = 1_000
 MS = 1_000_000

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from rascal.clock import MasterClock
+from rascal.runtime.clock import MasterClock
 
 MS = 1_000_000
 

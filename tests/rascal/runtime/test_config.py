@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from rascal.config import ConfigError, build_config, describe, parse_assignments, setting
+from rascal.runtime.config import ConfigError, build_config, describe, parse_assignments, setting
 
 
 @dataclass(frozen=True)

@@ -14,10 +14,10 @@ from protocol.auth import Keyring, load_keyring
 from protocol.authority import OPERATOR_SOURCE_ID
 from protocol.signing import derive_seed
 from protocol.transport import MemTransport
-from rascal.bus import Bus
-from rascal.clock import MasterClock
-from rascal.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
-from rascal.module import Runtime
+from rascal.runtime.bus import Bus
+from rascal.runtime.clock import MasterClock
+from rascal.runtime.deployment import DEFAULT_DEPLOYMENT, DeploymentError, load_deployment
+from rascal.runtime.module import Runtime
 from rascal.supervisor import SUPERVISOR_SOURCE_ID, Supervisor
 
 SMALL = """

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from protocol.faults import FAULTS_ENV, FaultRule, parse_rules
-from rascal.deployment import Deployment, DeploymentError, load_deployment
+from rascal.runtime.deployment import Deployment, DeploymentError, load_deployment
 
 HEAD = """
 [deployment]
