@@ -130,7 +130,10 @@ def _bound(
     np.maximum(best, field[flat + 1] - res * np.hypot(1.0 - fu, fv), out=best)
     np.maximum(best, field[flat + cols] - res * np.hypot(fu, 1.0 - fv), out=best)
     np.maximum(best, field[flat + cols + 1] - res * np.hypot(1.0 - fu, 1.0 - fv), out=best)
-    return np.where(block, best, _distance_to_boxes(marked, east, north))
+    beyond = ~block
+    if beyond.any():  # most queries lie wholly inside: no box distances for them
+        best[beyond] = _distance_to_boxes(marked, east[beyond], north[beyond])
+    return best
 
 
 def _marked_boxes(mask: NDArray[np.bool_], w: GridWindow, walls: Sides) -> Boxes:
