@@ -12,7 +12,8 @@ pose at its own ``t_meas_ns`` (PoseHistory), then:
   strip along its line;
 - a GroundSweep does the same for its stretches across the road, each a box: the level ones as
   deep as the ground the line moves over between sweeps, the low and high ones grown by the
-  sensor's noise;
+  sensor's noise; it is remembered for minutes, so it counts less while the heading's claimed
+  uncertainty moves its line more than ``sweep_heading_tolerance_m`` to one side;
 - LaneBorders mark a band outside each border as outside the lane and a band inside it as inside.
 
 Evidence fades with a half-life, applied in steps as time advances. ``cost_map()`` fuses the
@@ -29,7 +30,7 @@ import numpy as np
 
 from brain.fusion.cost import CostConfig, CostMap, build_cost_map, hazard_probability
 from brain.fusion.evidence import EvidenceLayers, Layer
-from brain.fusion.poses import Pose, PoseHistory
+from brain.fusion.poses import Pose, PoseHistory, heading_std_rad
 from brain.fusion.profile import classify_profile
 from brain.fusion.raster import Stamp, boxes, rectangles, sensor_frame, strips, vehicle_frame, view_polygon
 from brain.fusion.sensors import DEFAULT_SENSOR_MODELS, SensorClass, SensorModel
@@ -61,6 +62,11 @@ class FusionConfig:
     )
     sweep_half_distance_m: float = setting(
         200.0, "... and it also halves every this many metres driven: remembered ground moves with the pose's drift"
+    )
+    sweep_heading_tolerance_m: float = setting(
+        0.25,
+        "the sweep's ground counts in full while the heading's uncertainty moves it at most this far "
+        "across at its range, and less in proportion beyond: it is remembered for minutes",
     )
     decay_step_s: float = setting(0.1, "evidence fades in steps this far apart (exact over each step)")
     evidence_min: float = setting(-2.0, "lowest log-odds one sensor class can hold in a cell (seen clear)")
@@ -94,6 +100,7 @@ class FusionConfig:
             "lane_half_life_s",
             "sweep_half_life_s",
             "sweep_half_distance_m",
+            "sweep_heading_tolerance_m",
             "decay_step_s",
             "view_bin_deg",
             "pose_span_s",
@@ -158,6 +165,7 @@ class HazardFusion:
         self.t_ns: int | None = None  # map time: the newest time fused
         self.last_fused_ns: dict[int, int] = {}  # per Sensor: the newest t_meas_ns fused from it
         self._sweep_poses: dict[int, Pose] = {}  # per sweeping lidar: the pose of its last sweep
+        self._yaw_std_rad = 0.0  # the newest navigation state's heading uncertainty
         self._t_decayed_ns: int | None = None  # the time the layers' evidence refers to
         self._decayed_at: Pose | None = None  # where the vehicle was then
         self._half_lives_s = np.full(len(SensorClass), self.config.half_life_s, np.float32)
@@ -179,6 +187,7 @@ class HazardFusion:
         if t_meas_ns == self.poses.newest_ns:
             pose = self.poses.newest()
             assert pose is not None
+            self._yaw_std_rad = heading_std_rad(state)
             self._follow(pose)
             self._advance(t_meas_ns)
         return True
@@ -288,6 +297,12 @@ class HazardFusion:
         keep = finite & (near <= model.detect_range_m)
         self.stats.out_of_range += int(np.count_nonzero(finite & ~keep))
         rows, near = rows[keep], near[keep]
+        # A heading 0.5 deg off puts the line 0.3 m to one side at 37 m, and the sweep's ground is
+        # kept for minutes: while the heading is that uncertain (standing at the start, on the
+        # compass alone) it counts for less, so a few later sweeps outweigh it.
+        if len(near):
+            across_m = self._yaw_std_rad * float(near.max())
+            weight *= min(1.0, self.config.sweep_heading_tolerance_m / max(across_m, 1e-9))
         assert self.layers is not None and self.stamp is not None
         frame = vehicle_frame(pose)
         level = rows[:, 4] == 0.0

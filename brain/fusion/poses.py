@@ -18,6 +18,9 @@ from typing import NamedTuple
 from protocol.messages import NavQuality, VehicleState
 from rascal.runtime.angles import wrap_angle
 
+COVARIANCE_SIZE = 25  # VehicleState.covariance: row-major 5x5 over east, north, yaw, speed, yaw rate
+YAW_VARIANCE_AT = 12
+
 
 class Pose(NamedTuple):
     """The vehicle frame's origin (rear axle centre) and heading in ENU at one instant."""
@@ -25,6 +28,15 @@ class Pose(NamedTuple):
     east_m: float
     north_m: float
     yaw_rad: float
+
+
+def heading_std_rad(state: VehicleState) -> float:
+    """The state's claimed heading uncertainty; 0 (taken as exact) when its covariance is not the
+    5x5 of finite numbers the message defines, so a navigator that leaves it out changes nothing."""
+    covariance = state.covariance
+    if len(covariance) != COVARIANCE_SIZE or not all(map(math.isfinite, covariance)):
+        return 0.0
+    return math.sqrt(max(covariance[YAW_VARIANCE_AT], 0.0))
 
 
 @dataclass

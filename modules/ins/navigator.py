@@ -264,7 +264,9 @@ class InsFilter:
             ]
         )
         b = BIAS_OF_MAG[mag.magnetometer]
-        P[YAW, b] = P[b, YAW] = -bias_var  # yaw0 = yaw - bias + noise: its error is minus the bias
+        # yaw0 = yaw - bias - noise: its error and the bias estimate's (0 - bias) are both minus the
+        # bias, so they move together. The wrong sign made the compass look like it pinned the yaw.
+        P[YAW, b] = P[b, YAW] = bias_var
         self._core.x, self._core.P = x, P
         self._history = [_Step(fix.t_ns, None, x.copy(), P.copy())]
         self._accept_gps(fix)

@@ -213,6 +213,7 @@ class Run(NamedTuple):
     speed_mps: np.ndarray
     quality: np.ndarray
     position_var_m2: np.ndarray  # east + north variance
+    yaw_var_rad2: np.ndarray
     mag_bias_rad: np.ndarray  # (samples, 2)
     worst_asymmetry: float  # max |P - P'| seen
     min_eigenvalue: float  # smallest eigenvalue of P seen
@@ -221,7 +222,7 @@ class Run(NamedTuple):
 def run(nav: Navigator, events: Sequence[Event], samples: int, on_event: Callable[[Event], None] | None = None) -> Run:
     """Feed ``events`` to ``nav`` and read its estimate after every IMU sample.
     ``on_event`` sees each event after the filter did."""
-    est = np.full((samples, 7), np.nan)
+    est = np.full((samples, 8), np.nan)
     quality = np.zeros(samples, dtype=int)
     asymmetry, min_eig = 0.0, math.inf
     handlers = {"imu": nav.on_imu, "gps": nav.on_gps, "speed": nav.on_speed, "mag": nav.on_mag}
@@ -240,9 +241,10 @@ def run(nav: Navigator, events: Sequence[Event], samples: int, on_event: Callabl
             min_eig = min(min_eig, float(np.linalg.eigvalsh(P)[0]))
         cov = state.covariance
         x = nav.x
-        est[k] = (state.east_m, state.north_m, state.yaw_rad, state.speed_mps, cov[0] + cov[6], x[6], x[7])
+        est[k] = (state.east_m, state.north_m, state.yaw_rad, state.speed_mps, cov[0] + cov[6], cov[12], x[6], x[7])
         quality[k] = state.quality
-    return Run(est[:, 0], est[:, 1], est[:, 2], est[:, 3], quality, est[:, 4], est[:, 5:7], asymmetry, min_eig)
+    east, north, yaw, speed, position_var, yaw_var = est[:, :6].T
+    return Run(east, north, yaw, speed, quality, position_var, yaw_var, est[:, 6:8], asymmetry, min_eig)
 
 
 class Errors(NamedTuple):

@@ -13,7 +13,12 @@ from protocol.messages import Frame, NavQuality, Obstacle, ObstacleList, Sensor,
 MS = 1_000_000
 
 
-def state(east: float, north: float, yaw: float, speed: float = 0.0, yaw_rate: float = 0.0) -> VehicleState:
+def state(
+    east: float, north: float, yaw: float, speed: float = 0.0, yaw_rate: float = 0.0, yaw_std: float = 0.0
+) -> VehicleState:
+    """A navigation state; its covariance claims ``yaw_std`` of heading and nothing else."""
+    covariance = [0.0] * 25
+    covariance[12] = yaw_std**2
     return VehicleState(
         east,
         north,
@@ -23,7 +28,7 @@ def state(east: float, north: float, yaw: float, speed: float = 0.0, yaw_rate: f
         speed * math.cos(yaw),
         speed * math.sin(yaw),
         yaw_rate,
-        (0.0,) * 25,
+        tuple(covariance),
         NavQuality.DGPS,
     )
 

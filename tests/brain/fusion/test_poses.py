@@ -7,6 +7,7 @@ import math
 import pytest
 
 from brain.fusion import PoseHistory
+from brain.fusion.poses import heading_std_rad
 from protocol.messages import NavQuality
 from tests.brain.fusion.helpers import MS, state
 
@@ -69,3 +70,10 @@ def test_late_states_are_inserted_in_order_and_old_ones_dropped() -> None:
 def test_rejects_a_bad_configuration() -> None:
     with pytest.raises(ValueError):
         PoseHistory(span_ns=0)
+
+
+def test_the_heading_uncertainty_is_read_from_the_covariance_or_taken_as_exact() -> None:
+    assert heading_std_rad(state(0.0, 0.0, 0.0, yaw_std=0.03)) == pytest.approx(0.03)
+    # Left out or unreadable: exact, so the map treats the state as it did before it was read.
+    for covariance in ((), (0.0,) * 24, (math.nan,) * 25):
+        assert heading_std_rad(state(0.0, 0.0, 0.0)._replace(covariance=covariance)) == 0.0

@@ -58,6 +58,18 @@ def wash_is_lethal(fusion: HazardFusion, x_m: float = LINE_M + 1.0, y_m: float =
     return bool(cost_map.lethal[row, col])
 
 
+def test_sweeps_placed_with_an_uncertain_heading_count_less_until_the_heading_is_known() -> None:
+    """Standing at the start the heading is the compasses' (3.5 deg here): the line 37 m ahead may
+    lie 2 m to one side, and what it marks would stay for minutes. It counts for a tenth then."""
+    fusion = parked(EAST, NORTH, YAW)
+    fusion.add_pose(0, state(EAST, NORTH, YAW, yaw_std=math.radians(3.5)))
+    wash_sweeps(fusion, count=1)
+    assert not wash_is_lethal(fusion)
+    fusion.add_pose(0, state(EAST, NORTH, YAW, yaw_std=math.radians(0.3)))  # 0.2 m at the line: in full
+    wash_sweeps(fusion, count=1)
+    assert wash_is_lethal(fusion)
+
+
 def test_one_sweep_of_the_wash_outlasts_obstacle_evidence_while_the_vehicle_stands() -> None:
     fusion = parked(EAST, NORTH, YAW)
     wash_sweeps(fusion, count=1)
