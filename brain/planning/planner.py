@@ -203,7 +203,8 @@ class Planner:
         """The cycle's layers on the part of the map it can touch: the corridor from the vehicle to
         the horizon (and a vehicle length on, for the nose) and round the vehicle itself, widened
         by `map_reach_m`. The fused window is a square round the heading, most of it beside the
-        corridor; cutting that away makes the layers several times cheaper. The cut edges are walls."""
+        corridor; the crop is 25-68 % of it (42 % at p50 on the default drive), and the layers cost
+        in proportion. The cut edges are walls."""
         cfg = self.config
         hazard, cost_array = np.asarray(hazard_probability), np.asarray(cost)
         low_e, low_n, high_e, high_n = self.frame.band_box(s0, s_end + cfg.vehicle_length_m, self.map_reach_m)

@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 
 from brain.course_config import DEFAULT_COURSE, load_course
-from brain.fusion.cost import CostMap
-from brain.fusion.fusion import HazardFusion
+from brain.fusion.cost import CostConfig, CostMap
+from brain.fusion.fusion import FusionConfig, HazardFusion
 from brain.health import HORIZONTAL_LIDARS, LIDARS, STEREO, DriveMode, HealthParams, SensorHealth
 from brain.planning.backup import BackUp, BackUpSettings, FloatArray, Trail, back_up
+from brain.planning.config import PlannerConfig
 from brain.planning.planner import PlanMode, Planner, PlanResult
 from brain.stall import STANDING_MPS, StallWatch, Standing, leads_on
 from protocol import channels
@@ -41,7 +42,7 @@ from protocol.messages import (
     SurfaceProfile,
     VehicleState,
 )
-from rascal.runtime.config import setting
+from rascal.runtime.config import section, setting
 from rascal.runtime.module import Module, Runtime
 
 SENSOR_NAMES = {
@@ -86,6 +87,9 @@ class BrainConfig:
     stall_after_s: float = setting(5.0, "standing this long with a way ahead: stalled, plan afresh (and again)")
     back_up_m: float = setting(4.0, "a stall or blockage that lasts backs the vehicle up this far along its trail")
     back_up_speed_mps: float = setting(1.0, "backing-up speed")
+    fusion: FusionConfig = section(FusionConfig, "the hazard map: window, evidence and how it fades")
+    cost: CostConfig = section(CostConfig, "the hazard map's costs: what is lethal, what is caution")
+    planner: PlannerConfig = section(PlannerConfig, "the planner: footprint, margins, candidates, searches")
 
 
 class Brain(Module):
@@ -121,7 +125,7 @@ class Brain(Module):
         cv2.setNumThreads(1)  # the fusion and planning budgets are shares of one core
         course = load_course(config.course, config.origin)
         bus = self.bus
-        self.planner = Planner.for_course(course)
+        self.planner = Planner.for_course(course, config.planner)
         finish_m = course.interpolate().length_m - FINISH_M
         self.stall = StallWatch(finish_m, config.blocked_after_s, config.stall_after_s)
         self.corridor = course.corridor
@@ -130,7 +134,7 @@ class Brain(Module):
         # commands: those are signed, and verifying each would cost more than the stall watch.
         self.held_by_operator = False
         bus.subscribe(channels.STOP, self.on_stop_order)
-        self.fusion = HazardFusion()
+        self.fusion = HazardFusion(config.fusion, cost=config.cost)
         params = HealthParams(config.lidar_max_age_s, config.stereo_max_age_s, config.navigation_max_age_s)
         self.health = SensorHealth(params, expected=tuple(config.sensors))
         bus.subscribe(channels.VEHICLE_STATE, self.on_vehicle_state)

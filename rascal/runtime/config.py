@@ -1,8 +1,11 @@
 """Typed module configuration: dataclasses with defaults and units, strict loading.
 
 Every module declares a frozen dataclass; each field has a default and a ``help`` metadata
-string. Loading from TOML tables or ``--set key=value`` rejects unknown keys and wrong types by
-name, and ``--print-config`` is generated from the same declaration so it cannot drift.
+string. A field whose type is itself such a dataclass is a section (the brain's ``planner``,
+``fusion`` and ``cost``): a TOML sub-table, or dotted keys (``--set planner.margin_m=0.2``).
+Loading rejects unknown keys and wrong types by name, a section's own checks (``__post_init__``)
+report as configuration errors too, and ``--print-config`` is generated from the same declaration,
+sections included, so it cannot drift.
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from typing import Any, TypeVar
+from typing import Any, TypeGuard, TypeVar
 
 C = TypeVar("C")
 
@@ -26,43 +29,106 @@ def setting(default: Any, help: str) -> Any:
     return dataclasses.field(default=default, metadata={"help": help})
 
 
+def section(cls: type, help: str) -> Any:
+    """A config field that is a nested config dataclass, at its defaults unless set."""
+    if not is_section(cls):
+        raise TypeError(f"a section is a config dataclass, not {cls!r}")
+    return dataclasses.field(default_factory=cls, metadata={"help": help})
+
+
+def is_section(tp: Any) -> TypeGuard[type]:
+    """Whether a field's type is a nested config dataclass."""
+    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
 def build_config(cls: type[C], values: dict[str, Any], where: str = "config") -> C:
-    """Instantiate ``cls`` from a mapping, checking every key and type."""
+    """Instantiate ``cls`` from a mapping (sections from nested mappings), checking every key
+    and type; a value the class's own checks refuse is a ConfigError naming where it was set."""
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
     hints = typing.get_type_hints(cls)
     checked = {name: _coerce(hints[name], value, f"{where}.{name}") for name, value in values.items()}
-    return cls(**checked)
+    try:
+        return cls(**checked)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def parse_assignments(cls: type, assignments: list[str], where: str = "--set") -> dict[str, Any]:
-    """``["rate_hz=20", "name=x"]`` -> typed values, parsed by each field's declared type."""
-    hints = typing.get_type_hints(cls)
+    """``["rate_hz=20", "planner.margin_m=0.2"]`` -> typed values, parsed by each field's declared
+    type; a dotted key sets a field of a section (nested mappings, as TOML sub-tables give)."""
     values: dict[str, Any] = {}
     for assignment in assignments:
         key, sep, text = assignment.partition("=")
         if not sep:
             raise ConfigError(f"{where} {assignment!r}: expected KEY=VALUE")
-        if key not in hints:
-            raise ConfigError(f"{where} {key}: unknown key; known: {sorted(hints)}")
-        values[key] = _parse_text(hints[key], text, f"{where} {key}")
+        *sections, name = key.split(".")
+        section_cls, target = cls, values
+        for section in sections:
+            hint = typing.get_type_hints(section_cls).get(section)
+            if not is_section(hint):
+                raise ConfigError(f"{where} {key}: {section!r} is not a section; sections: {_sections(section_cls)}")
+            section_cls, target = hint, target.setdefault(section, {})
+        hints = typing.get_type_hints(section_cls)
+        if name not in hints or is_section(hints[name]):
+            known = sorted(n for n, tp in hints.items() if not is_section(tp))
+            raise ConfigError(f"{where} {key}: unknown key; known: {known}, sections: {_sections(section_cls)}")
+        target[name] = _parse_text(hints[name], text, f"{where} {key}")
     return values
 
 
+def merge_values(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """``overrides`` over ``base``, section by section (a --set of one planner field keeps the
+    file's other planner settings)."""
+    merged = dict(base)
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_values(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def flatten_values(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested mappings as dotted keys: ``{"planner": {"margin_m": 0.2}}`` -> ``{"planner.margin_m": 0.2}``."""
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat |= flatten_values(value, f"{prefix}{key}.")
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 def describe(cls: type, instance: Any | None = None) -> str:
-    """Human-readable listing of a config class: name, type, value, help (for --print-config)."""
-    hints = typing.get_type_hints(cls)
-    rows = []
-    for f in dataclasses.fields(cls):
-        value = getattr(instance, f.name) if instance is not None else _default_of(f)
-        rows.append((f.name, _type_name(hints[f.name]), repr(value), f.metadata.get("help", "")))
+    """Human-readable listing of a config class: name, type, value, help (for --print-config);
+    a section's fields follow under their dotted names."""
+    rows = _rows(cls, instance, "")
     width = [max(len(row[i]) for row in rows) for i in range(3)] if rows else [0, 0, 0]
     return "\n".join(
         f"{name:<{width[0]}}  {tname:<{width[1]}}  {value:<{width[2]}}  # {help_text}"
         for name, tname, value, help_text in rows
     )
+
+
+def _rows(cls: type, instance: Any | None, prefix: str) -> list[tuple[str, str, str, str]]:
+    hints = typing.get_type_hints(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        value = getattr(instance, f.name) if instance is not None else _default_of(f)
+        if is_section(hints[f.name]):
+            rows += _rows(hints[f.name], value, f"{prefix}{f.name}.")
+        else:
+            rows.append((prefix + f.name, _type_name(hints[f.name]), repr(value), f.metadata.get("help", "")))
+    return rows
+
+
+def _sections(cls: type) -> list[str]:
+    return sorted(name for name, tp in typing.get_type_hints(cls).items() if is_section(tp))
 
 
 def _default_of(f: dataclasses.Field[Any]) -> Any:
@@ -80,6 +146,12 @@ def _type_name(tp: Any) -> str:
 
 
 def _coerce(tp: Any, value: Any, where: str) -> Any:
+    if is_section(tp):
+        if isinstance(value, tp):
+            return value
+        if isinstance(value, dict):
+            return build_config(tp, value, where)
+        raise ConfigError(f"{where}: expected a table of {tp.__name__} settings, got {value!r}")
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         options = typing.get_args(tp)

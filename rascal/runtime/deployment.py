@@ -53,7 +53,7 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 from protocol import channels
 from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
-from rascal.runtime.config import ConfigError, build_config
+from rascal.runtime.config import ConfigError, build_config, flatten_values
 from rascal.runtime.launch import module_class
 
 DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "localhost.toml"
@@ -278,7 +278,7 @@ class _Parser:
             build_config(cls.Config, values, f"{self.path}: {where}.set")
         except ConfigError as exc:
             raise DeploymentError(str(exc)) from None
-        settings = {key: _setting_text(value) for key, value in values.items()}
+        settings = {key: _setting_text(value) for key, value in flatten_values(values).items()}
         nice = self.integer(table, where, "nice", default=0)
         if not 0 <= nice <= 19:
             raise self.fail(f"{where}.nice", f"expected 0..19, got {nice}")

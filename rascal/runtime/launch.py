@@ -12,7 +12,7 @@ from typing import Any
 from protocol.auth import KeyFileError, default_keyring, load_keyring
 from protocol.transport import UrlError
 from rascal.runtime.bus import Bus
-from rascal.runtime.config import ConfigError, build_config, describe, parse_assignments
+from rascal.runtime.config import ConfigError, build_config, describe, merge_values, parse_assignments
 from rascal.runtime.module import Module, Runtime, make_clock
 
 
@@ -54,7 +54,7 @@ def load_module_config(cls: type[Module], config_file: Path | None, assignments:
             raise ConfigError(f"{config_file}: {exc}") from exc
         values = doc.get(cls.name, doc)
         where = f"{config_file}" + (f" [{cls.name}]" if cls.name in doc else "")
-    values = {**values, **parse_assignments(cls.Config, assignments)}
+    values = merge_values(values, parse_assignments(cls.Config, assignments))
     return build_config(cls.Config, values, where)
 
 

@@ -6,7 +6,26 @@ from dataclasses import dataclass
 
 import pytest
 
-from rascal.runtime.config import ConfigError, build_config, describe, parse_assignments, setting
+from rascal.runtime.config import (
+    ConfigError,
+    build_config,
+    describe,
+    flatten_values,
+    merge_values,
+    parse_assignments,
+    section,
+    setting,
+)
+
+
+@dataclass(frozen=True)
+class FilterSection:
+    gain: float = setting(0.5, "how much a sample moves the estimate")
+    taps: int = setting(4, "samples averaged")
+
+    def __post_init__(self) -> None:
+        if not 0 < self.gain <= 1:
+            raise ValueError(f"gain must be in (0, 1], got {self.gain}")
 
 
 @dataclass(frozen=True)
@@ -15,6 +34,7 @@ class ExampleConfig:
     count: int = setting(3, "how many")
     enabled: bool = setting(True, "on or off")
     channels: tuple[str, ...] = setting(("A",), "channels")
+    filter: FilterSection = section(FilterSection, "the smoothing filter")
 
 
 def test_defaults_apply_when_nothing_is_given() -> None:
@@ -49,3 +69,46 @@ def test_description_lists_every_field_with_help() -> None:
     text = describe(ExampleConfig)
     for name in ("rate_hz", "count", "enabled", "channels", "publication rate"):
         assert name in text
+
+
+def test_a_section_is_a_sub_table_or_dotted_keys_and_keeps_what_is_not_overridden() -> None:
+    from_file = {"rate_hz": 5.0, "filter": {"gain": 0.25, "taps": 8}}
+    overrides = parse_assignments(ExampleConfig, ["filter.taps=2", "count=1"])
+    assert overrides == {"filter": {"taps": 2}, "count": 1}
+    config = build_config(ExampleConfig, merge_values(from_file, overrides))
+    assert config.filter == FilterSection(gain=0.25, taps=2) and config.rate_hz == 5.0 and config.count == 1
+    assert build_config(ExampleConfig, {}).filter == FilterSection()
+    assert flatten_values(from_file) == {"rate_hz": 5.0, "filter.gain": 0.25, "filter.taps": 8}
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"filter": {"gains": 1.0}}, r"beacon\.toml\.filter: unknown key\(s\) \['gains'\]"),
+        ({"filter": {"taps": "four"}}, r"beacon\.toml\.filter\.taps: expected int"),
+        ({"filter": 3}, r"beacon\.toml\.filter: expected a table of FilterSection settings"),
+        ({"filter": {"gain": 2.0}}, r"beacon\.toml\.filter: gain must be in \(0, 1\], got 2\.0"),
+    ],
+)
+def test_a_sections_mistakes_name_the_section_and_key(values: dict[str, object], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        build_config(ExampleConfig, values, "beacon.toml")
+
+
+@pytest.mark.parametrize(
+    ("assignment", "message"),
+    [
+        ("filter.gains=1", r"--set filter\.gains: unknown key; known: \['gain', 'taps'\]"),
+        ("rate.hz=1", r"--set rate\.hz: 'rate' is not a section; sections: \['filter'\]"),
+        ("filter=1", r"--set filter: unknown key"),
+    ],
+)
+def test_dotted_assignments_name_what_is_wrong(assignment: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_assignments(ExampleConfig, [assignment])
+
+
+def test_description_lists_a_sections_fields_under_dotted_names() -> None:
+    lines = describe(ExampleConfig, build_config(ExampleConfig, {"filter": {"taps": 6}})).splitlines()
+    assert [line.split()[0] for line in lines][-2:] == ["filter.gain", "filter.taps"]
+    assert "6" in lines[-1].split()[2] and "samples averaged" in lines[-1]
