@@ -12,11 +12,11 @@ from importlib.metadata import version
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from brain.rddf_cli import add_rddf_commands
 from modules.sim.generate import add_scenario_commands
 from protocol.auth import DEFAULT_KEY_FILE, Keyring, write_keyring
 from rascal.bustools import make_console, reporting_errors
 from rascal.logtools import add_log_commands
+from rascal.rddf_cli import add_rddf_commands
 from rascal.report import add_report_command
 from rascal.units import add_deploy_commands
 

@@ -1,6 +1,6 @@
 """`rascal rddf plot FILE -o OUT.png|.svg`: the corridor, the path coloured by desired speed,
 direction arrows, numbered waypoints (labels kept apart where the course loops back), start and
-finish. The command's options are declared with the other rddf tools (brain/rddf_cli.py)."""
+finish. The command's options are declared with the other rddf tools (rascal/rddf_cli.py)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from brain.corridor import Course, CoursePath
-from brain.rddf_cli import duration_text, load_course_path
 from rascal.plot_map import draw_corridor, draw_start_finish, freeze_map, label_start_finish, map_figure, speed_line
 from rascal.plotting import DPI, INK, PAPER, LabelPlacer, save_as, speed_colorbar, styled
+from rascal.rddf_cli import duration_text, load_course_path
 
 MAX_LABELS = 60  # long courses mark every n-th waypoint only, so the markers do not bury the path
 ARROWS = 16  # direction arrows along the centreline

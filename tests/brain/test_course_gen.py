@@ -23,7 +23,7 @@ from brain.rddf import Waypoint, load_rddf, parse_rddf
 from modules.sim.generate import Options, generate
 from modules.sim.scenario import load_scenario
 from tests.brain.rddf_samples import real_rddf_params, waypoints_at
-from tests.brain.test_rddf_cli import rascal
+from tests.rascal.test_rddf_cli import rascal
 
 SEEDS = range(2005, 2013)
 

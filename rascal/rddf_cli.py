@@ -1,6 +1,7 @@
 """`rascal rddf info FILE` and `rascal rddf plot FILE -o OUT.png`: check, summarise and draw an RDDF course;
-`rascal rddf generate` and `rascal rddf cut`: write one (brain/course_gen.py). The drawing lives
-with the tools (rascal/rddf_plot.py), which hand their handler in: brain imports no tool."""
+`rascal rddf generate` and `rascal rddf cut`: write one (brain/course_gen.py). The drawing is
+rascal/rddf_plot.py's, whose handler the command line hands in (rddf_plot reads courses with
+``load_course_path`` from here)."""
 
 from __future__ import annotations
 
