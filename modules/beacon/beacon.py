@@ -13,6 +13,7 @@ from protocol import channels
 from protocol.messages import Frame, Obstacle, ObstacleList, Sensor
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module
+from rascal.runtime.ports import Port
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,10 @@ class Beacon(Module):
     name = "beacon"
     default_source_id = 3
     Config = BeaconConfig
+    interface = (
+        Port("out", "`OBSTACLES_BEACON` (configurable)", "ObstacleList (SYNTHETIC, VEHICLE frame)", "`rate_hz` (10)"),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def on_start(self) -> None:
         if self.config.rate_hz <= 0 or self.config.obstacles < 0:

@@ -44,6 +44,7 @@ from protocol.messages import (
 )
 from rascal.runtime.config import section, setting
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 
 SENSOR_NAMES = {
     Sensor.LIDAR_H_LEFT: "lidar_h_left",
@@ -98,6 +99,41 @@ class Brain(Module):
     name = "brain"
     default_source_id = 30
     Config = BrainConfig
+    interface = (
+        Port(
+            "in",
+            "`VEHICLE_STATE`",
+            "VehicleState (pose, covariance, quality)",
+            "100 Hz",
+            "`navigation_max_age_s` 0.2 s",
+        ),
+        Port("in", "`OBSTACLES_LIDAR`", "ObstacleList (horizontal lidars)", "2 x 25 Hz", "`lidar_max_age_s` 0.2 s"),
+        Port(
+            "in",
+            "`OBSTACLES_ESVS`",
+            "ObstacleList (stereo): a report starts a planning cycle at once",
+            "10 Hz",
+            "`stereo_max_age_s` 0.5 s",
+        ),
+        Port("in", "`SURFACE_PROFILE`", "SurfaceProfile (vertical lidars)", "2 x 25 Hz", "`lidar_max_age_s`"),
+        Port("in", "`GROUND_SWEEP`", "GroundSweep (sweeping lidar)", "37.5 Hz", "`lidar_max_age_s`"),
+        Port("in", "`LANE_BORDERS`", "LaneBorders", "as published"),
+        Port("in", "`STOP`", "StopCommand: an operator's hold is not a stall", "on order"),
+        Port("out", "`PATH`", "Path, stamped with the vehicle state's measurement time", "`plan_rate_hz` (10)"),
+        Port(
+            "out",
+            "`MAP_SNAPSHOT`",
+            "MapSnapshot (hazard probability, `snapshot_downsample` cells a side)",
+            "`snapshot_rate_hz` (1)",
+        ),
+        Port(
+            "out",
+            "`HEALTH`",
+            "`drive_mode`, `plan_refused`, `corridor_blocked`, `stalled`, `backing_up`, `moving_again`",
+            "on event",
+        ),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus: mode, plan, cycle time and its p99, messages fused", "1 Hz"),
+    )
 
     def __init__(self, config: BrainConfig, runtime: Runtime) -> None:
         super().__init__(config, runtime)

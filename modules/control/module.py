@@ -34,6 +34,7 @@ from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, NavQuality, Path, Severity, StopCommand, StopMode, VehicleState
 from rascal.runtime.config import ConfigError, setting
 from rascal.runtime.module import Module, run_artefact
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Validity
 
 
@@ -124,6 +125,43 @@ class Control(Module):
     name = "control"
     default_source_id = 40
     Config = ControlConfig
+    interface = (
+        Port(
+            "in",
+            "`VEHICLE_STATE`",
+            "VehicleState (rear-axle pose, speed, yaw rate, nav quality)",
+            "INS rate (≥ 20 Hz)",
+            "`state_max_age_s` (0.2 s)",
+        ),
+        Port(
+            "in",
+            "`PATH`",
+            "Path (ENU points with target speeds, `slow_mode`, `reverse`)",
+            "planner rate (≥ 2 Hz)",
+            "`path_max_age_s` (0.5 s)",
+        ),
+        Port("in", "`STOP`", "StopCommand (RUN, PAUSE, ESTOP)", "on event", "none: acted on in the handler"),
+        Port(
+            "out",
+            "`ACTUATOR_COMMAND`",
+            "ActuatorCommand (throttle, brake 0..1, steering left +, `stop_reason`, `reverse` gear)",
+            "`rate_hz` (50), plus one at once per stop command",
+        ),
+        Port(
+            "out",
+            "`HEALTH`",
+            "HealthEvent `control_failsafe` / `control_resumed` (once per transition), `estop`, `pause`, `run`, "
+            "`stop_unknown`, `corridor_edge` (once per stop at the edge)",
+            "on event",
+        ),
+        Port(
+            "out",
+            "`MODULE_STATUS`",
+            "ModuleStatus; detail: controller, mode, cross-track error, speed error, steering, "
+            "predicted corridor clearance and cap",
+            "1 Hz",
+        ),
+    )
 
     def on_start(self) -> None:
         config: ControlConfig = self.config

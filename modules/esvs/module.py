@@ -37,6 +37,7 @@ from protocol.codec import Envelope
 from protocol.messages import ConfigUpdate, LaneBorders, ModuleState, ObstacleList, Severity, VehicleState
 from rascal.runtime.config import ConfigError
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Validity
 
 ACTIVATION_HISTORY = 4096  # per worker, for inter-activation statistics
@@ -65,6 +66,48 @@ class Esvs(Module):
     name = "esvs"
     default_source_id = 20
     Config = EsvsConfig
+    interface = (
+        Port(
+            "in",
+            "frame ring `ring_name` (shared memory)",
+            "stereo pair 656x490 grey, sequence, exposure time",
+            "one per round (the camera is triggered by the grabs)",
+            "newest frame only; silent 1 s: DEGRADED",
+        ),
+        Port("out", "frame ring trigger", "this grab's time and the round period, for the camera", "one per round"),
+        Port(
+            "in",
+            "`VEHICLE_STATE`",
+            "VehicleState (recorded; its age is reported in status)",
+            "the INS's",
+            "`vehicle_state_max_age_s` (0.5 s)",
+        ),
+        Port("in", "`CONFIG`", "ConfigUpdate for `esvs` (live keys below)", "on demand"),
+        Port(
+            "out",
+            "`OBSTACLES_ESVS`",
+            "ObstacleList (`ESVS`, VEHICLE frame), `t_meas_ns` = exposure time",
+            "one per round with a new result",
+        ),
+        Port(
+            "out",
+            "`LANE_BORDERS`",
+            "LaneBorders (`ESVS`, VEHICLE frame), `t_meas_ns` = exposure time",
+            "one per round with a new result",
+        ),
+        Port(
+            "out",
+            "`HEALTH`",
+            "`worker_started`, `worker_restart`, `config`, `config_rejected`, `fault_injected`",
+            "on event",
+        ),
+        Port(
+            "out",
+            "`MODULE_STATUS`",
+            "ModuleStatus: round period, jitter, overruns, worker restarts; detail below",
+            "1 Hz",
+        ),
+    )
 
     def __init__(self, config: EsvsConfig, runtime: Runtime, context: BaseContext | None = None) -> None:
         """``context`` (a multiprocessing context) replaces the fork server, for tests."""

@@ -13,6 +13,7 @@ from protocol.codec import Envelope
 from protocol.messages import ModuleStatus, Severity
 from rascal.runtime.config import ConfigError, setting
 from rascal.runtime.module import Module
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Latest
 
 
@@ -29,6 +30,16 @@ class HealthMonitor(Module):
     name = "health"
     default_source_id = 2
     Config = HealthConfig
+    interface = (
+        Port("in", "`MODULE_STATUS`", "ModuleStatus", "1 Hz per module", "`heartbeat_timeout_s` (3 s)"),
+        Port(
+            "in", "each `watch` entry `CHANNEL:MAX_AGE_S`", "the channel's type", "any", "`MAX_AGE_S`, from `t_meas_ns`"
+        ),
+        Port(
+            "out", "`HEALTH`", "HealthEvent `module_silent`, `module_back`, `input_stale`, `input_fresh`", "on change"
+        ),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def on_start(self) -> None:
         self.last_heartbeat_ns: dict[str, int] = {}

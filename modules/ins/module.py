@@ -20,6 +20,7 @@ from protocol.codec import Envelope
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, Severity, WheelSpeed
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 
 # Ages after which an input counts as stale in the heartbeat: a few missed samples at each rate.
 IMU_MAX_AGE_S = 0.05
@@ -49,6 +50,25 @@ class Ins(Module):
     name = "ins"
     default_source_id = 11
     Config = InsConfig
+    interface = (
+        Port("in", "`IMU`", "ImuSample", "100 Hz", "0.05 s (heartbeat)"),
+        Port("in", "`GPS`", "GpsFix", "10 Hz", "1.0 s (heartbeat)"),
+        Port("in", "`WHEEL_SPEED`", "WheelSpeed", "50 Hz", "0.2 s (heartbeat)"),
+        Port("in", "`MAG_HEADING`", "MagHeading (two units)", "2 x 20 Hz", "0.5 s (heartbeat)"),
+        Port(
+            "out",
+            "`VEHICLE_STATE`",
+            "VehicleState: pose, speed, yaw rate, 5x5 covariance, quality",
+            "one per IMU step (`rate_hz` 100)",
+        ),
+        Port(
+            "out",
+            "`HEALTH`",
+            "`nav_quality` on every quality change; `gps_rejected`, `gps_reacquired` (1 Hz summary)",
+            "on event",
+        ),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def __init__(self, config: InsConfig, runtime: Runtime) -> None:
         super().__init__(config, runtime)

@@ -21,6 +21,7 @@ from protocol import channels
 from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Validity
 
 # Source ids the runner gives each lidar process (``--source-id``), and what each one is.
@@ -69,6 +70,28 @@ class Lidar(Module):
     name = "lidar"
     default_source_id = SOURCE_IDS["lidar_h_left"]
     Config = LidarConfig
+    interface = (
+        Port("in", "`SIM_TRUTH`", "SimTruth (the newest pose is used)", "the simulator's", "0.5 s"),
+        Port(
+            "out",
+            "`OBSTACLES_LIDAR` (horizontal lidars)",
+            "ObstacleList (`LIDAR_H_LEFT`/`_RIGHT`, VEHICLE frame)",
+            "`rate_hz` (25)",
+        ),
+        Port(
+            "out",
+            "`SURFACE_PROFILE` (vertical lidars)",
+            "SurfaceProfile (`LIDAR_V_LEFT`/`_RIGHT`, `lateral_m` +-0.5)",
+            "`rate_hz` (25)",
+        ),
+        Port(
+            "out",
+            "`GROUND_SWEEP` (sweeping lidar)",
+            "GroundSweep (`LIDAR_SWEEP`, VEHICLE frame)",
+            "`rate_hz` (the deployments: 37.5, a SICK's rate at 0.5 deg)",
+        ),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def __init__(self, config: LidarConfig, runtime: Runtime, world: World | None = None, seed: int = 0) -> None:
         """``world`` (with its ``seed``) replaces the scenario file: tests and an in-process

@@ -38,6 +38,7 @@ from protocol.codec import Envelope
 from protocol.messages import SimTruth
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 
 # Names in the fault schedule, also the order in which per-sensor random streams are spawned.
 SENSOR_STREAMS = ("imu", "gps", "speedometer", "magnetometer_1", "magnetometer_2")
@@ -166,6 +167,24 @@ class NavSensors(Module):
     name = "nav_sensors"
     default_source_id = 10
     Config = NavSensorsConfig
+    interface = (
+        Port("in", "`SIM_TRUTH`", "SimTruth", "100 Hz (the simulator's step)", "0.1 s (heartbeat reports it stale)"),
+        Port(
+            "out",
+            "`IMU`",
+            "ImuSample (body frame x forward, y left, z up; specific force includes gravity)",
+            "`imu_hz` (100)",
+        ),
+        Port("out", "`GPS`", "GpsFix (WGS84, quality DGPS; nothing during an outage)", "`gps_hz` (10)"),
+        Port("out", "`WHEEL_SPEED`", "WheelSpeed (speed and odometer, with scale error)", "`speedometer_hz` (50)"),
+        Port(
+            "out",
+            "`MAG_HEADING`",
+            "MagHeading, `magnetometer` 1 and 2 (heading clockwise from north)",
+            "`magnetometer_hz` (20) each",
+        ),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def __init__(self, config: NavSensorsConfig, runtime: Runtime, inputs: ScenarioInputs | None = None) -> None:
         """``inputs`` replaces reading the scenario file (tests, or a caller that has it loaded)."""

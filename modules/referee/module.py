@@ -26,6 +26,7 @@ from protocol.messages import Path as PlannedPath
 from protocol.messages import SimTruth
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime, run_artefact
+from rascal.runtime.ports import Port
 
 SUMMARY_PERIOD_S = 1.0
 
@@ -42,6 +43,17 @@ class Referee(Module):
     name = "referee"
     default_source_id = 6
     Config = RefereeConfig
+    interface = (
+        Port("in", "`SIM_TRUTH`", "SimTruth (true pose, speed, progress, collision and exit counts)", "100 Hz"),
+        Port("in", "`PATH`", "Path (the brain's plans: cross-track is measured to the newest)", "10 Hz"),
+        Port("out", "`drive.json`", "the measures below, rewritten every second and at the end", "1 Hz"),
+        Port(
+            "out",
+            "`MODULE_STATUS`",
+            "ModuleStatus: completion, time, speed ratio, cross-track, infractions, clearance",
+            "1 Hz",
+        ),
+    )
 
     def __init__(self, config: RefereeConfig, runtime: Runtime) -> None:
         super().__init__(config, runtime)

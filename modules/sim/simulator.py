@@ -23,6 +23,7 @@ from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, Severity, SimTruth
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module
+from rascal.runtime.ports import Port
 
 PARKED = ActuatorCommand(throttle=0.0, brake=1.0, steering_rad=0.0, stop_reason="not yet commanded")
 # A late tick steps the physics by the time that really passed, so simulated time stays shared
@@ -45,6 +46,17 @@ class Simulator(Module):
     name = "sim"
     default_source_id = 5
     Config = SimConfig
+    interface = (
+        Port("in", "`ACTUATOR_COMMAND`", "ActuatorCommand", "50 Hz (control)", "none: the last command is held"),
+        Port(
+            "out",
+            "`SIM_TRUTH`",
+            "SimTruth (pose, speed, progress, collisions, corridor exits, scenario time)",
+            "`rate_hz` (100)",
+        ),
+        Port("out", "`HEALTH`", "HealthEvent `collision`, `corridor_exit` (once each, when it begins)", "on event"),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def __init__(self, config: SimConfig, runtime: object, scenario: Scenario | None = None) -> None:
         super().__init__(config, runtime)  # type: ignore[arg-type]

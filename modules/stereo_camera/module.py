@@ -31,6 +31,7 @@ from protocol import channels
 from protocol.messages import SimTruth
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Validity
 
 TRUTH_MAX_AGE_S = 0.5  # the simulator publishes at 100 Hz: older means it stopped
@@ -59,6 +60,22 @@ class StereoCamera(Module):
     name = "stereo_camera"
     default_source_id = 19
     Config = StereoCameraConfig
+    interface = (
+        Port("in", "`SIM_TRUTH`", "SimTruth (the newest pose is used)", "the simulator's (100 Hz)", "0.5 s"),
+        Port("in", "frame ring trigger", "the ESVS round's latest grab and period", "one per grab", "3 periods"),
+        Port(
+            "out",
+            "frame ring `ring_name` (shared memory, `ring_slots` frames)",
+            "656x490 grey pair, sequence, exposure time",
+            "one per grab (10 Hz), or `fps` (15) untriggered",
+        ),
+        Port(
+            "out",
+            "`MODULE_STATUS`",
+            "ModuleStatus (frames written, slowest recent frame, triggered or free-running, late frames, active fault)",
+            "1 Hz",
+        ),
+    )
 
     def __init__(
         self,

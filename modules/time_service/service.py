@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rascal.runtime.module import Module
+from rascal.runtime.ports import Port
 
 
 @dataclass(frozen=True)
@@ -18,6 +19,17 @@ class TimeService(Module):
     name = "time_service"
     default_source_id = 1
     Config = TimeServiceConfig
+    interface = (
+        Port(
+            "in",
+            "`TIME_SYNC`",
+            "TimeSync REQUEST",
+            "10 Hz per node until its estimate settles (32 exchanges), then one per 2 s",
+            "judged by t1 matching, not age",
+        ),
+        Port("out", "`TIME_SYNC`", "TimeSync REPLY (t1 echoed, t2 receive, t3 send)", "one per request"),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
     time_master = True
 
     def status_detail(self) -> str:

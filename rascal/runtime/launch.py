@@ -14,6 +14,7 @@ from protocol.transport import UrlError
 from rascal.runtime.bus import Bus
 from rascal.runtime.config import ConfigError, build_config, describe, merge_values, parse_assignments
 from rascal.runtime.module import Module, Runtime, make_clock
+from rascal.runtime.ports import interface_table
 
 
 def module_class(name: str) -> type[Module]:
@@ -37,6 +38,7 @@ def argument_parser(cls: type[Module]) -> argparse.ArgumentParser:
     parser.add_argument("--config", type=Path, help=f"TOML file; keys at top level or in a [{cls.name}] table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config key")
     parser.add_argument("--print-config", action="store_true", help="print the effective configuration and exit")
+    parser.add_argument("--interface", action="store_true", help="print what it reads and writes (its README table)")
     parser.add_argument("--duration", type=float, help="exit after this many seconds")
     parser.add_argument("--restarts", type=int, default=0, help="restart count, reported in heartbeats")
     parser.add_argument("--clock-offset-ms", type=float, default=0.0, help="fault injection: skew the local clock")
@@ -60,6 +62,9 @@ def load_module_config(cls: type[Module], config_file: Path | None, assignments:
 
 def run_module(cls: type[Module], argv: list[str] | None = None) -> None:
     args = argument_parser(cls).parse_args(argv)
+    if args.interface:
+        print(interface_table(cls.interface))
+        return
     try:
         config = load_module_config(cls, args.config, args.set)
         if args.print_config:

@@ -27,6 +27,7 @@ from protocol.messages import HealthEvent, ModuleState, ModuleStatus, Severity
 from rascal.runtime.bus import Bus
 from rascal.runtime.clock import Clock, MasterClock, SharedClock, SkewedLocal
 from rascal.runtime.cpu import UNKNOWN_PCT, CpuMeter
+from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Latest
 from rascal.runtime.sdnotify import Notifier
 from rascal.runtime.timeclient import TimeClient, TimeMaster
@@ -75,11 +76,13 @@ class _Task:
 
 
 class Module:
-    """Base class of a module process. Subclasses set ``name``, ``default_source_id``, ``Config``."""
+    """Base class of a module process. Subclasses set ``name``, ``default_source_id``, ``Config``
+    and ``interface`` (what they read and write: rascal/runtime/ports.py)."""
 
     name: ClassVar[str] = "module"
     default_source_id: ClassVar[int] = 0
     Config: ClassVar[type] = object
+    interface: ClassVar[tuple[Port, ...]] = ()
     cpu_counts_children: ClassVar[bool] = True  # the heartbeat's CPU includes child processes
 
     def __init__(self, config: Any, runtime: Runtime) -> None:

@@ -12,6 +12,7 @@ from protocol.messages import Frame, Obstacle, ObstacleList, Sensor
 from rascal.runtime.config import setting
 from rascal.runtime.launch import run_module
 from rascal.runtime.module import Module
+from rascal.runtime.ports import Port
 
 # A real module declares its own channel in protocol/channels.py (the bus tools refuse undeclared
 # channels); the example borrows the beacon's, so it needs no edit outside the tests.
@@ -30,6 +31,10 @@ class Example(Module):
     name = "example"
     default_source_id = 60
     Config = ExampleConfig
+    interface = (
+        Port("out", "`OBSTACLES_BEACON`", "ObstacleList (SYNTHETIC, VEHICLE frame)", "`rate_hz` (5)"),
+        Port("out", "`MODULE_STATUS`", "ModuleStatus", "1 Hz"),
+    )
 
     def on_start(self) -> None:
         if self.config.rate_hz <= 0:
