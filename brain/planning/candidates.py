@@ -249,7 +249,7 @@ def _gap_offsets(frame: CorridorFrame, gate: PathGate, config: PlannerConfig, co
     a few metres on, each offset's margin is the least of its clearance to lethal cells and to the
     corridor's edge beyond what the gate asks; every run of offsets with a positive margin gives
     the offset of its best margin."""
-    s = np.arange(conflict_m, conflict_m + config.vehicle_length_m + _GAP_DEPTH_M, config.check_spacing_m)
+    s = np.arange(conflict_m, conflict_m + config.vehicle.length_m + _GAP_DEPTH_M, config.check_spacing_m)
     s = s[s <= frame.length_m]
     if len(s) == 0 or config.max_gap_offsets == 0:
         return np.zeros(0)

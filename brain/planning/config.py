@@ -1,9 +1,6 @@
-"""The planner's settings, with units in the names, and the vehicle dimensions they start from.
-
-The footprint and steering defaults are those of the simulated ATV
-(``modules.sim.vehicle.VehicleParams``: 1.2 m wide, 2.1 m long, rear axle 0.4 m from the back,
-1.25 m wheelbase, wheels to 0.5 rad at 0.8 rad/s); the planner does not import the simulator,
-so a test keeps the two in step.
+"""The planner's settings, with units in the names. The vehicle it plans for (footprint and
+steering) is its ``vehicle`` section, the same VehicleGeometry the simulator and control hold
+(brain/vehicle.py), set for all three by a deployment's ``[vehicle]`` table.
 """
 
 from __future__ import annotations
@@ -13,7 +10,8 @@ from dataclasses import dataclass, fields
 
 from brain.planning.hybrid import HybridSettings
 from brain.planning.pursuit import Bicycle
-from rascal.runtime.config import setting
+from brain.vehicle import VehicleGeometry
+from rascal.runtime.config import section, setting
 
 SEARCH_METHODS = ("hybrid", "lattice")
 
@@ -22,12 +20,7 @@ SEARCH_METHODS = ("hybrid", "lattice")
 class PlannerConfig:
     """Everything the planner can be tuned by. Validated on construction: bad values raise ValueError."""
 
-    vehicle_width_m: float = setting(1.2, "overall width of the vehicle footprint")
-    vehicle_length_m: float = setting(2.1, "overall length of the vehicle footprint")
-    rear_overhang_m: float = setting(0.4, "rear axle (the pose's reference point) to the rear end")
-    wheelbase_m: float = setting(1.25, "rear axle to front axle: with the steering, how tight it turns")
-    max_steering_rad: float = setting(0.5, "front wheel angle limit, either side")
-    max_steering_rate_radps: float = setting(0.8, "how fast the steering actuator turns the wheels")
+    vehicle: VehicleGeometry = section(VehicleGeometry, "the vehicle planned for: footprint and steering")
     # What the margins are for: the INS errs across the track, 3-8 cm RMS and up to 0.16 m, against
     # the exact corridor edge. Hazards are mapped in the INS's own frame, so against them only its
     # drift since they were seen counts: 2.5 cm RMS over 5 s, at most 0.13 m (measured in the wash
@@ -145,14 +138,12 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.search_method: one of {SEARCH_METHODS}, got {self.search_method!r}")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "search_method":
+            if f.name in ("search_method", "vehicle"):
                 continue
             values = value if isinstance(value, tuple) else (value,)
             if not values or not all(isinstance(v, int | float) and math.isfinite(v) and v >= 0 for v in values):
                 raise ValueError(f"PlannerConfig.{f.name}: must be finite and not negative, got {value!r}")
         positive = (
-            "vehicle_width_m",
-            "vehicle_length_m",
             "horizon_m",
             "point_spacing_m",
             "check_spacing_m",
@@ -163,8 +154,6 @@ class PlannerConfig:
             "max_lateral_accel_mps2",
             "curvature_window_m",
             "cost_cap",
-            "wheelbase_m",
-            "max_steering_rate_radps",
             "pursuit_lookahead_m",
             "slow_speed_mps",
             "search_speed_mps",
@@ -186,20 +175,16 @@ class PlannerConfig:
             raise ValueError("PlannerConfig.hybrid_step_m: a step must turn at least one heading bin at full lock")
         if self.search_heuristic_weight < 1.0:
             raise ValueError("PlannerConfig.search_heuristic_weight: must be at least 1")
-        if self.rear_overhang_m >= self.vehicle_length_m:
-            raise ValueError("PlannerConfig.rear_overhang_m: must be shorter than vehicle_length_m")
         if self.max_transition_m < self.min_transition_m:
             raise ValueError("PlannerConfig.max_transition_m: must not be below min_transition_m")
         if self.check_spacing_m > self.point_spacing_m:
             raise ValueError("PlannerConfig.check_spacing_m: must not exceed point_spacing_m")
-        if not 0.0 < self.max_steering_rad < math.pi / 2:
-            raise ValueError("PlannerConfig.max_steering_rad: must be in (0, pi/2)")
         if not 0.0 < self.caution_probability <= 1.0:
             raise ValueError("PlannerConfig.caution_probability: must be in (0, 1]")
 
     @property
     def half_width_m(self) -> float:
-        return self.vehicle_width_m / 2.0
+        return self.vehicle.half_width_m
 
     @property
     def clearance_m(self) -> float:
@@ -221,7 +206,7 @@ class PlannerConfig:
     @property
     def turning_radius_m(self) -> float:
         """The rear axle's tightest turn."""
-        return self.wheelbase_m / math.tan(self.max_steering_rad)
+        return self.vehicle.turning_radius_m
 
     @property
     def hybrid(self) -> HybridSettings:
@@ -243,9 +228,9 @@ class PlannerConfig:
     def bicycle(self) -> Bicycle:
         """The vehicle as a searched path's track is driven: at slow speed, by pure pursuit."""
         return Bicycle(
-            wheelbase_m=self.wheelbase_m,
-            max_steering_rad=self.max_steering_rad,
-            max_steering_rate_radps=self.max_steering_rate_radps,
+            wheelbase_m=self.vehicle.wheelbase_m,
+            max_steering_rad=self.vehicle.max_steering_rad,
+            max_steering_rate_radps=self.vehicle.max_steering_rate_radps,
             speed_mps=self.slow_speed_mps,
             lookahead_m=self.pursuit_lookahead_m,
         )

@@ -182,7 +182,7 @@ class Planner:
             cfg.clearance_m,
             cfg.corridor_clearance_m,
             cfg.check_spacing_m,
-            cfg.vehicle_length_m - cfg.rear_overhang_m,
+            cfg.vehicle.front_m,
         )
         cycle = _Cycle(self, gate, east, north, yaw, speed, max_speed_mps, s0, d0)
         # A map that does not cover the vehicle says nothing about where it is: do not drive on it.
@@ -207,8 +207,8 @@ class Planner:
         in proportion. The cut edges are walls."""
         cfg = self.config
         hazard, cost_array = np.asarray(hazard_probability), np.asarray(cost)
-        low_e, low_n, high_e, high_n = self.frame.band_box(s0, s_end + cfg.vehicle_length_m, self.map_reach_m)
-        around = cfg.vehicle_length_m + self.map_reach_m
+        low_e, low_n, high_e, high_n = self.frame.band_box(s0, s_end + cfg.vehicle.length_m, self.map_reach_m)
+        around = cfg.vehicle.length_m + self.map_reach_m
         crop = window.crop(
             min(low_e, east - around),
             min(low_n, north - around),
@@ -653,7 +653,10 @@ class _Cycle:
         course_cap = self.frame.speed_at(stations_m) / (
             1.0 + cfg.cost_speed_gain * self.gate.hazards.cost_at(points[:, 0], points[:, 1])
         )
-        steering_cap = steering_rate_cap(points, cfg.curvature_window_m, cfg.wheelbase_m, cfg.max_steering_rate_radps)
+        vehicle = cfg.vehicle
+        steering_cap = steering_rate_cap(
+            points, cfg.curvature_window_m, vehicle.wheelbase_m, vehicle.max_steering_rate_radps
+        )
         return np.minimum.reduce(
             [turn_cap, course_cap, steering_cap, self.near_cap(points), np.full(len(points), self.max_speed)]
         )

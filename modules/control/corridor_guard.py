@@ -26,7 +26,7 @@ is sampled at ``SAMPLES`` even steps. A footprint that no segment's band comes n
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from brain.corridor import Corridor
 from brain.planning.bounds import Box, LocalCorridor
-from brain.planning.config import PlannerConfig
+from brain.vehicle import VehicleGeometry
 
 FloatArray = NDArray[np.float64]
 
@@ -44,32 +44,11 @@ _FRACTIONS = np.linspace(0.0, 1.0, SAMPLES + 1)
 
 
 @dataclass(frozen=True)
-class Footprint:
-    """The vehicle's outline around the rear axle (the pose's reference point)."""
-
-    width_m: float
-    length_m: float
-    rear_overhang_m: float
-
-    @classmethod
-    def planned(cls) -> Footprint:
-        """The vehicle the planner plans for (`PlannerConfig`, kept equal to the simulator's by a test)."""
-        planner = PlannerConfig()
-        return cls(planner.vehicle_width_m, planner.vehicle_length_m, planner.rear_overhang_m)
-
-    def corners(self) -> tuple[FloatArray, FloatArray]:
-        """(ahead, left) of the four corners, metres from the rear axle."""
-        back, front, half = -self.rear_overhang_m, self.length_m - self.rear_overhang_m, self.width_m / 2.0
-        return np.array([back, back, front, front]), np.array([-half, half, -half, half])
-
-
-@dataclass(frozen=True)
 class GuardSettings:
     horizon_s: float = 0.6  # seconds of travel predicted: brake lag, a control step, and some braking
     min_reach_m: float = 0.5  # ... and at least this far
     margin_m: float = 0.3  # the speed is capped when the footprint would come this near the edge
     creep_mps: float = 0.5  # the lowest cap: still moving, so the steering can turn it away
-    footprint: Footprint = field(default_factory=Footprint.planned)
 
     def __post_init__(self) -> None:
         for name in ("horizon_s", "min_reach_m", "margin_m", "creep_mps"):
@@ -95,14 +74,14 @@ class EdgeVerdict(NamedTuple):
 class CorridorGuard:
     """Speed cap and brake verdict from the footprint predicted along the present steering."""
 
-    def __init__(self, corridor: Corridor, wheelbase_m: float, settings: GuardSettings | None = None) -> None:
-        if not (math.isfinite(wheelbase_m) and wheelbase_m > 0.0):
-            raise ValueError(f"wheelbase_m must be finite and positive, got {wheelbase_m!r}")
+    def __init__(
+        self, corridor: Corridor, vehicle: VehicleGeometry | None = None, settings: GuardSettings | None = None
+    ) -> None:
         self.settings = settings or GuardSettings()
-        self.wheelbase_m = wheelbase_m
+        self.vehicle = vehicle or VehicleGeometry()
         self.corridors = LocalCorridor(corridor)
-        ahead, left = self.settings.footprint.corners()
-        self._corners = ahead + 1j * left
+        back, front, half = -self.vehicle.rear_overhang_m, self.vehicle.front_m, self.vehicle.half_width_m
+        self._corners = np.array([back, back, front, front]) + 1j * np.array([-half, half, -half, half])
         self._box: Box = (math.inf, math.inf, -math.inf, -math.inf)  # contains nothing: look up at once
         self._near: Corridor | None = None
 
@@ -121,7 +100,7 @@ class CorridorGuard:
         stop_reach = max(s.min_reach_m, speed_mps * s.horizon_s)
         look_reach = max(stop_reach, target_speed_mps * s.horizon_s)
         arc = np.concatenate((stop_reach * _FRACTIONS, look_reach * _FRACTIONS))
-        clearance = self._clearance(east_m, north_m, yaw_rad, math.tan(steering_rad) / self.wheelbase_m, arc)
+        clearance = self._clearance(east_m, north_m, yaw_rad, math.tan(steering_rad) / self.vehicle.wheelbase_m, arc)
         now = float(clearance[0])
         stop = slice(0, SAMPLES + 1)
         look = slice(SAMPLES + 1, None)

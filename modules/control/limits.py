@@ -1,8 +1,8 @@
 """Steering limits of the vehicle: the wheel-angle stop and the steering actuator's rate.
 
-The defaults are the simulated ATV's (``modules.sim.vehicle.VehicleParams``); a test pins them
-together. The controller limits its own command the same way the actuator will, so it always
-knows the steering it actually asked for and its derivative terms never fight a saturated wheel.
+The defaults are the vehicle's (brain/vehicle.py, declared there once). The controller limits
+its own command the same way the actuator will, so it always knows the steering it actually
+asked for and its derivative terms never fight a saturated wheel.
 """
 
 from __future__ import annotations
@@ -10,9 +10,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-DEFAULT_WHEELBASE_M = 1.25
-DEFAULT_MAX_STEERING_RAD = 0.5
-DEFAULT_MAX_STEERING_RATE_RADPS = 0.8
+from brain.vehicle import VehicleGeometry
+
+_VEHICLE = VehicleGeometry()
+DEFAULT_WHEELBASE_M = _VEHICLE.wheelbase_m
+DEFAULT_MAX_STEERING_RAD = _VEHICLE.max_steering_rad
+DEFAULT_MAX_STEERING_RATE_RADPS = _VEHICLE.max_steering_rate_radps
 
 
 def clamp(value: float, low: float, high: float) -> float:

@@ -16,14 +16,10 @@ from dataclasses import dataclass
 from pathlib import Path as FilePath
 
 from brain.course_config import load_course
+from brain.vehicle import VehicleGeometry
 from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose
 from modules.control.corridor_guard import CorridorGuard, GuardSettings
-from modules.control.limits import (
-    DEFAULT_MAX_STEERING_RAD,
-    DEFAULT_MAX_STEERING_RATE_RADPS,
-    DEFAULT_WHEELBASE_M,
-    SteeringLimits,
-)
+from modules.control.limits import SteeringLimits
 from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
 from modules.control.reverse import ReversingController
 from modules.control.speed import SpeedGains
@@ -32,7 +28,7 @@ from modules.control.stop_latch import StopLatch, StopOrder
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, NavQuality, Path, Severity, StopCommand, StopMode, VehicleState
-from rascal.runtime.config import ConfigError, setting
+from rascal.runtime.config import ConfigError, section, setting
 from rascal.runtime.module import Module, run_artefact
 from rascal.runtime.ports import Port
 from rascal.runtime.rtdb import Validity
@@ -63,9 +59,7 @@ class ControlConfig:
         DEFAULT_HEADING_SMOOTHING_M, "path heading is averaged over +- this (sharp corners start turning early)"
     )
     slow_mode_speed_mps: float = setting(1.0, "speed cap while the path is in slow mode (RASCAL: 1 m/s)")
-    wheelbase_m: float = setting(DEFAULT_WHEELBASE_M, "rear to front axle (Stanley's reference point)")
-    max_steering_rad: float = setting(DEFAULT_MAX_STEERING_RAD, "front wheel angle limit, either side")
-    max_steering_rate_radps: float = setting(DEFAULT_MAX_STEERING_RATE_RADPS, "steering actuator rate limit")
+    vehicle: VehicleGeometry = section(VehicleGeometry, "the vehicle steered: wheelbase, steering limits, footprint")
     stop_file: str = setting(
         "", "where the operator's stop/pause outlives a restart (default: control.stop.json in the run/state dir)"
     )
@@ -97,9 +91,9 @@ class ControlConfig:
     def controller_settings(self) -> ControllerSettings:
         return ControllerSettings(
             law=self.controller,
-            wheelbase_m=self.wheelbase_m,
+            wheelbase_m=self.vehicle.wheelbase_m,
             heading_bandwidth_radps=self.heading_bandwidth_radps,
-            limits=SteeringLimits(self.max_steering_rad, self.max_steering_rate_radps),
+            limits=SteeringLimits(self.vehicle.max_steering_rad, self.vehicle.max_steering_rate_radps),
             stanley=StanleyGains(self.stanley_gain, self.stanley_softening_mps, self.stanley_yaw_damping_s),
             pd=PdGains(
                 kp=self.pd_kp,
@@ -171,7 +165,7 @@ class Control(Module):
         self.path_in = self.input(channels.PATH, config.path_max_age_s)
         if config.course:
             corridor = load_course(config.course, config.origin).corridor
-            self.controller.guard = CorridorGuard(corridor, config.wheelbase_m, config.guard_settings())
+            self.controller.guard = CorridorGuard(corridor, config.vehicle, config.guard_settings())
         self.at_edge = False  # stopped for the corridor's edge, until the guard sees its margin kept again
         self.latch = StopLatch(_stop_file(config.stop_file))
         order, problem = self.latch.load()

@@ -18,13 +18,15 @@ from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
+from brain.vehicle import VehicleGeometry
 from modules.referee.measures import Referee as Measures
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
+from modules.sim.vehicle import VehicleParams
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import Path as PlannedPath
 from protocol.messages import SimTruth
-from rascal.runtime.config import setting
+from rascal.runtime.config import section, setting
 from rascal.runtime.module import Module, Runtime, run_artefact
 from rascal.runtime.ports import Port
 
@@ -35,6 +37,7 @@ SUMMARY_PERIOD_S = 1.0
 class RefereeConfig:
     scenario: str = setting(str(DEFAULT_SCENARIO), "scenario TOML whose route and obstacles are judged")
     out: str = setting("", "JSON file for the measures (empty: $RASCAL_RUN_DIR/drive.json, or none)")
+    vehicle: VehicleGeometry = section(VehicleGeometry, "the footprint judged: clearance, hazard entries")
 
 
 class Referee(Module):
@@ -60,7 +63,7 @@ class Referee(Module):
         self.out = Path(config.out) if config.out else run_artefact("drive.json")
 
     def on_start(self) -> None:
-        self.measures = Measures(load_scenario(self.config.scenario))
+        self.measures = Measures(load_scenario(self.config.scenario), VehicleParams(geometry=self.config.vehicle))
         self.arrivals: list[tuple[int, Callable[[Any], None], Any]] = []
         # Judged when the referee next looks, not as they come: neither stream needs it awake
         # (truth alone would wake it 100 times a second). Their arrival times keep the order.

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from brain.vehicle import VehicleGeometry
 from modules.sim.collision import collides, footprint
 from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from modules.sim.vehicle import VehicleParams, VehicleState, step
@@ -21,7 +22,7 @@ from modules.sim.world import WorldObstacle
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import ActuatorCommand, Severity, SimTruth
-from rascal.runtime.config import setting
+from rascal.runtime.config import section, setting
 from rascal.runtime.module import Module
 from rascal.runtime.ports import Port
 
@@ -38,6 +39,7 @@ WATCH_SLACK_M = 1e-6  # for rounding: a watched answer is asked again this much 
 class SimConfig:
     scenario: str = setting(str(DEFAULT_SCENARIO), "scenario TOML file")
     rate_hz: float = setting(100.0, "simulation and SimTruth rate")
+    vehicle: VehicleGeometry = section(VehicleGeometry, "the simulated vehicle's footprint and steering")
 
 
 class Simulator(Module):
@@ -65,7 +67,7 @@ class Simulator(Module):
     def on_start(self) -> None:
         if self.scenario is None:
             self.scenario = load_scenario(self.config.scenario)
-        self.world = WorldState(self.scenario, VehicleParams())
+        self.world = WorldState(self.scenario, VehicleParams(geometry=self.config.vehicle))
         self.command = PARKED
         self.dt_s = 1.0 / self.config.rate_hz
         self.last_tick_ns: int | None = None

@@ -18,7 +18,8 @@ import math
 from dataclasses import dataclass, fields
 from typing import Protocol
 
-from rascal.runtime.config import setting
+from brain.vehicle import VehicleGeometry
+from rascal.runtime.config import section, setting
 
 GRAVITY_MPS2 = 9.81
 _TAU = 2 * math.pi
@@ -45,13 +46,8 @@ class VehicleParams:
     """Physical parameters. Defaults describe a RASCAL-like ATV carrying its sensors and computers."""
 
     mass_kg: float = setting(450.0, "mass with sensors, computers and fuel")
-    wheelbase_m: float = setting(1.25, "rear axle to front axle")
+    geometry: VehicleGeometry = section(VehicleGeometry, "footprint and steering (brain/vehicle.py)")
     track_width_m: float = setting(1.0, "left to right wheel centres (for renderers; the bicycle model ignores it)")
-    length_m: float = setting(2.1, "overall length of the footprint")
-    width_m: float = setting(1.2, "overall width of the footprint")
-    rear_overhang_m: float = setting(0.4, "rear axle to the rear end of the footprint")
-    max_steering_rad: float = setting(0.5, "front wheel angle limit, either side")
-    max_steering_rate_radps: float = setting(0.8, "how fast the steering actuator turns the wheels")
     max_drive_force_n: float = setting(1200.0, "drive force at full throttle and low speed (traction, gearing)")
     max_drive_power_w: float = setting(
         6400.0, "drive power at the wheels at full throttle; with drag and rolling resistance it sets the top speed"
@@ -69,12 +65,33 @@ class VehicleParams:
         # divisions by zero or a vehicle that accelerates backwards, so refuse them by name.
         for f in fields(self):
             value = getattr(self, f.name)
-            if not math.isfinite(value) or value < 0 or (value == 0 and f.name != "rear_overhang_m"):
+            if f.name != "geometry" and (not math.isfinite(value) or value <= 0):
                 raise ValueError(f"VehicleParams.{f.name}: must be finite and positive, got {value!r}")
-        if self.rear_overhang_m >= self.length_m:
-            raise ValueError("VehicleParams.rear_overhang_m: must be shorter than length_m")
-        if self.max_steering_rad >= math.pi / 2:
-            raise ValueError("VehicleParams.max_steering_rad: must be below pi/2")
+
+    # The geometry read through, as the dynamics and the footprint checks use it.
+    @property
+    def wheelbase_m(self) -> float:
+        return self.geometry.wheelbase_m
+
+    @property
+    def length_m(self) -> float:
+        return self.geometry.length_m
+
+    @property
+    def width_m(self) -> float:
+        return self.geometry.width_m
+
+    @property
+    def rear_overhang_m(self) -> float:
+        return self.geometry.rear_overhang_m
+
+    @property
+    def max_steering_rad(self) -> float:
+        return self.geometry.max_steering_rad
+
+    @property
+    def max_steering_rate_radps(self) -> float:
+        return self.geometry.max_steering_rate_radps
 
 
 @dataclass(slots=True)

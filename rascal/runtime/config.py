@@ -127,6 +127,28 @@ def _rows(cls: type, instance: Any | None, prefix: str) -> list[tuple[str, str, 
     return rows
 
 
+def shared_sections(cls: type, table: str) -> dict[str, type]:
+    """The sections of ``cls``, at any depth, whose class is set from the deployment's ``table``
+    (its ``deployment_table`` class attribute): dotted path -> section class."""
+    found: dict[str, type] = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if not is_section(tp):
+            continue
+        if getattr(tp, "deployment_table", None) == table:
+            found[f.name] = tp
+        found |= {f"{f.name}.{path}": inner for path, inner in shared_sections(tp, table).items()}
+    return found
+
+
+def nest(path: str, values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` under a dotted section path: ``nest("planner.vehicle", v)`` -> ``{"planner": {"vehicle": v}}``."""
+    for name in reversed(path.split(".")):
+        values = {name: values}
+    return values
+
+
 def _sections(cls: type) -> list[str]:
     return sorted(name for name, tp in typing.get_type_hints(cls).items() if is_section(tp))
 

@@ -10,6 +10,9 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     course = "scenarios/mojave.rddf"          # the RDDF every ENU module plans and navigates in
     origin = ""                               # "lat,lon[,alt]"; empty: the course's first waypoint
 
+    [vehicle]                                 # optional: the vehicle's footprint and steering
+    width_m = 1.2                             #   (brain/vehicle.py), for every module that holds it
+
     [hosts.brainbox]                          # optional; without hosts every module is local
     address = "10.0.0.2"                      # this host's LAN address: its iface= on an off-host bus
 
@@ -33,7 +36,9 @@ One TOML file per deployment (``deploy/localhost.toml`` is the default)::
     STOP = ["operator", "supervisor"]         #   "supervisor" (every host's), or source ids 1..65535
 
 A module whose configuration has ``scenario``, ``course`` or ``origin`` settings gets the
-deployment's unless its ``set`` table overrides them, so every process shares one frame. Errors
+deployment's unless its ``set`` table overrides them, so every process shares one frame; in the
+same way, ``[vehicle]`` sets the ``vehicle`` section of the simulator, control, the brain's
+planner and the referee, so all four drive, steer, plan and judge one vehicle. Errors
 name the file and the key. Each module's fault rules reach it as ``$RASCAL_FAULTS``, with the
 rule's seed mixed with the module's source id (repeatable, yet modules lose different datagrams).
 A governed channel that ``[authority]`` does not name gets its default (``DEFAULT_AUTHORITY``):
@@ -53,11 +58,14 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 from protocol import channels
 from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
-from rascal.runtime.config import ConfigError, build_config, flatten_values
+from rascal.runtime.config import ConfigError, build_config, flatten_values, merge_values, nest, shared_sections
 from rascal.runtime.launch import module_class
 
 DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "localhost.toml"
 SHARED_SETTINGS = ("scenario", "course", "origin")
+# Tables of the deployment that set a section in every module holding one (brain/vehicle.py's
+# VehicleGeometry: the simulator, control, the planner and the referee all read [vehicle]).
+SHARED_TABLES = ("vehicle",)
 LOCALHOST = "localhost"
 FAULT_SELECTORS = ("modules", "to_hosts", "from_modules", "from_hosts")
 # Each host's own processes (supervisor, recorder) get source ids offset by this per host, in
@@ -201,7 +209,7 @@ class _Parser:
         return DeploymentError(f"{self.path}: {key}: {problem}")
 
     def deployment(self, doc: dict[str, Any]) -> Deployment:
-        self.keys(doc, "", {"deployment", "hosts", "modules", "faults", "authority"})
+        self.keys(doc, "", {"deployment", "hosts", "modules", "faults", "authority", *SHARED_TABLES})
         head = self.table(doc, "deployment")
         self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
         hosts_table = self.table(doc, "hosts", required=False)
@@ -219,6 +227,8 @@ class _Parser:
             "course": self.path_or_none(head, "course"),
             "origin": self.string(head, "deployment", "origin", default=""),
         }
+        self.shared_tables = {name: self.table(doc, name, required=False) for name in SHARED_TABLES}
+        self.checked_tables: set[str] = set()
         modules_table = self.table(doc, "modules")
         if not modules_table:
             raise self.fail("modules", "a deployment needs at least one module")
@@ -244,6 +254,16 @@ class _Parser:
             tuple(specs),
             self.authority(self.table(doc, "authority", required=False), specs, hosts),
         )
+
+    def check_shared(self, name: str, section_class: type) -> None:
+        """A shared table's mistakes are named once, as the table's, not as each module's."""
+        if name in self.checked_tables:
+            return
+        try:
+            build_config(section_class, self.shared_tables[name], f"{self.path}: {name}")
+        except ConfigError as exc:
+            raise DeploymentError(str(exc)) from None
+        self.checked_tables.add(name)
 
     def module(
         self, label: str, table: Any, hosts: dict[str, str], explicit_hosts: bool, shared: dict[str, Any]
@@ -273,7 +293,12 @@ class _Parser:
             raise self.fail(f"{where}.set", "expected a table of KEY = value")
         config_fields = {f.name for f in dataclasses.fields(cls.Config)}
         values = {k: shared[k] for k in SHARED_SETTINGS if k in config_fields and shared[k] not in (None, "")}
-        values = {k: str(v) for k, v in values.items()} | dict(overrides)
+        values = {k: str(v) for k, v in values.items()}
+        for table_name, table_values in self.shared_tables.items():
+            for path, section_class in shared_sections(cls.Config, table_name).items():
+                self.check_shared(table_name, section_class)
+                values = merge_values(values, nest(path, table_values))
+        values = merge_values(values, dict(overrides))
         try:
             build_config(cls.Config, values, f"{self.path}: {where}.set")
         except ConfigError as exc:

@@ -32,7 +32,7 @@ def gate_for(grid: Map, course: Course) -> PathGate:
     hazards = HazardField(
         grid.window, grid.hazard, grid.cost, CONFIG.clearance_m, CONFIG.cost_cap, CONFIG.caution_probability
     )
-    nose = CONFIG.vehicle_length_m - CONFIG.rear_overhang_m
+    nose = CONFIG.vehicle.front_m
     return PathGate(
         hazards,
         LocalCorridor(course.corridor),

@@ -13,7 +13,6 @@ from brain.planning import PlanMode, Planner, PlannerConfig, PlanResult
 from brain.planning import planner as planning_planner
 from brain.planning.hazards import HazardField
 from brain.planning.speed import arc_length, curvature
-from modules.sim.vehicle import VehicleParams
 from protocol.codec import Codec, decode_body
 from protocol.messages import NavQuality, Path, VehicleState
 from tests.brain.planning.scenes import (
@@ -150,10 +149,10 @@ def test_a_zigzag_of_gaps_is_searched_through_at_the_search_speed(method: str) -
     assert CONFIG.slow_speed_mps < points[:, 2].max() <= CONFIG.search_speed_mps + 1e-9
     assert points[-1, 2] == 0.0
     # Swinging from lock to lock, the steering keeps up at the speeds planned (within one chord).
-    wheel = np.arctan(CONFIG.wheelbase_m * curvature(points[:, :2], CONFIG.curvature_window_m, signed=True))
+    wheel = np.arctan(CONFIG.vehicle.wheelbase_m * curvature(points[:, :2], CONFIG.curvature_window_m, signed=True))
     along = arc_length(points[:, :2])
     rate = np.abs(np.diff(wheel)) / np.diff(along) * np.minimum(points[1:, 2], points[:-1, 2])
-    assert rate.max() <= 1.3 * CONFIG.max_steering_rate_radps
+    assert rate.max() <= 1.3 * CONFIG.vehicle.max_steering_rate_radps
     assert_safe(points, grid)
     dense = densified(points[:, :2])
     through_first = dense[np.abs(dense[:, 0] - 140.5) < 0.5]
@@ -215,7 +214,7 @@ def test_a_far_chicane_is_approached_at_speed_and_stopped_short_of() -> None:
     points = path_points(result.path)
     assert result.mode is PlanMode.REPLAN and result.partial and not result.slow_mode
     assert points[:5, 2].min() >= 6.0 and points[-1, 2] == 0.0
-    nose = CONFIG.vehicle_length_m - CONFIG.rear_overhang_m
+    nose = CONFIG.vehicle.front_m
     assert points[-1, 0] + nose <= 154.1 - CONFIG.clearance_m  # through the first gap, short of the second wall
     assert_safe(points, grid)
     # Driven on, every path safe, the vehicle is through both gaps without stopping.
@@ -522,16 +521,9 @@ def test_a_map_of_the_wrong_shape_is_refused() -> None:
         planner().plan(Pose(100.0, 0.0), grid.window, grid.hazard[:, :-1], grid.cost, 5.0)
 
 
-def test_the_default_footprint_is_the_simulated_vehicle() -> None:
-    vehicle = VehicleParams()
-    assert CONFIG.vehicle_width_m == vehicle.width_m
-    assert CONFIG.vehicle_length_m == vehicle.length_m
-    assert CONFIG.rear_overhang_m == vehicle.rear_overhang_m
-
-
 @pytest.mark.parametrize(
     "changes",
-    [{"margin_m": -0.1}, {"search_stride": 0}, {"rear_overhang_m": 3.0}, {"transition_times_s": ()}],
+    [{"margin_m": -0.1}, {"search_stride": 0}, {"max_offsets": 0}, {"transition_times_s": ()}],
 )
 def test_bad_settings_are_refused(changes: dict[str, object]) -> None:
     with pytest.raises(ValueError, match="PlannerConfig"):

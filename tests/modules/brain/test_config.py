@@ -26,13 +26,21 @@ from rascal.runtime.module import Runtime
 SECTIONS = [f for f in dataclasses.fields(BrainConfig) if is_section(typing.get_type_hints(BrainConfig)[f.name])]
 
 
-def section_fields() -> list[tuple[str, dataclasses.Field[Any], Any]]:
+def leaves(prefix: str, config: Any) -> list[tuple[str, Any]]:
+    """Every setting under a section, at any depth: (dotted name, default value)."""
+    found: list[tuple[str, Any]] = []
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if dataclasses.is_dataclass(value):
+            found += leaves(f"{prefix}{field.name}.", value)
+        else:
+            found.append((f"{prefix}{field.name}", value))
+    return found
+
+
+def section_fields() -> list[tuple[str, Any]]:
     defaults = BrainConfig()
-    return [
-        (section.name, field, getattr(getattr(defaults, section.name), field.name))
-        for section in SECTIONS
-        for field in dataclasses.fields(getattr(defaults, section.name))
-    ]
+    return [leaf for section in SECTIONS for leaf in leaves(f"{section.name}.", getattr(defaults, section.name))]
 
 
 def toml_value(value: Any) -> str:
@@ -50,8 +58,7 @@ def test_the_brain_has_the_three_sections() -> None:
 
 def test_every_section_setting_is_listed_by_print_config() -> None:
     listed = {line.split()[0] for line in describe(BrainConfig, BrainConfig()).splitlines()}
-    missing = [f"{section}.{field.name}" for section, field, _ in section_fields()]
-    assert [name for name in missing if name not in listed] == []
+    assert [name for name, _ in section_fields() if name not in listed] == []
 
 
 def test_every_section_setting_can_be_set_from_a_deployment_file(tmp_path: Path) -> None:
@@ -59,15 +66,15 @@ def test_every_section_setting_can_be_set_from_a_deployment_file(tmp_path: Path)
     it loads, the brain is launched with each as a dotted --set, and those build the default
     config back."""
     (tmp_path / "course.rddf").write_text("1,35.0,-117.0,30,10\n2,35.0,-116.99,30,10\n")
-    settings = "\n".join(f"{section}.{field.name} = {toml_value(value)}" for section, field, value in section_fields())
+    settings = "\n".join(f"{name} = {toml_value(value)}" for name, value in section_fields())
     path = tmp_path / "deploy.toml"
     path.write_text(
         '[deployment]\nname = "tuned"\nbus = "udpm://239.255.1.2:7700?ttl=0"\ncourse = "course.rddf"\n\n'
         f"[modules.time_service]\n\n[modules.brain]\n\n[modules.brain.set]\n{settings}\n"
     )
     spec = load_deployment(path).spec("brain")
-    for section, field, _ in section_fields():
-        assert f"{section}.{field.name}" in spec.settings
+    for name, _ in section_fields():
+        assert name in spec.settings
     config = load_module_config(Brain, None, [f"{key}={text}" for key, text in spec.settings.items()])
     defaults = BrainConfig()
     for section in SECTIONS:

@@ -3,6 +3,7 @@ and the controller with it, closing the loop on the simulated vehicle."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -10,8 +11,9 @@ import numpy as np
 import pytest
 
 from brain.corridor import Corridor
+from brain.vehicle import VehicleGeometry
 from modules.control.controller import ControllerSettings, Mode, Pose, VehicleController
-from modules.control.corridor_guard import CorridorGuard, Footprint, GuardSettings
+from modules.control.corridor_guard import CorridorGuard, GuardSettings
 from modules.control.limits import DEFAULT_MAX_STEERING_RAD, DEFAULT_WHEELBASE_M
 from modules.control.path_tracking import TrackedPath
 from modules.sim.collision import footprint
@@ -20,16 +22,16 @@ from protocol.messages import ActuatorCommand
 from tests.modules.control.closed_loop import SIM_DT_S, drive, s_curve
 
 HALF_WIDTH_M = 1.85  # the narrowest real race corridors, 3.7 m: 1.25 m to spare each side of the vehicle
-VEHICLE = Footprint.planned()
+VEHICLE = VehicleGeometry()
 SIDE_M = VEHICLE.width_m / 2.0
-NOSE_M = VEHICLE.length_m - VEHICLE.rear_overhang_m  # rear axle to the front end
+NOSE_M = VEHICLE.front_m  # rear axle to the front end
 STRAIGHT = Corridor([[-50.0, 0.0]], [[250.0, 0.0]], [HALF_WIDTH_M])  # due east
 ALONG_EDGE_Y = HALF_WIDTH_M - SIDE_M - 0.1  # a rear axle whose left side runs 0.1 m inside the edge
 PARAMS = VehicleParams()
 
 
 def guard(corridor: Corridor = STRAIGHT) -> CorridorGuard:
-    return CorridorGuard(corridor, DEFAULT_WHEELBASE_M)
+    return CorridorGuard(corridor, VEHICLE)
 
 
 def ring(centre_radius_m: float, segments: int = 72) -> Corridor:
@@ -89,7 +91,7 @@ def test_a_tight_legal_turn_in_a_narrow_corridor_is_left_alone(radius_m: float) 
     steering = math.atan(DEFAULT_WHEELBASE_M / radius_m)
     speed = math.sqrt(2.0 * radius_m)
     for angle in np.linspace(0.0, math.tau, 9):  # anywhere round the bend, anticlockwise
-        verdict = CorridorGuard(corridor, DEFAULT_WHEELBASE_M).assess(
+        verdict = CorridorGuard(corridor, VEHICLE).assess(
             radius_m * math.cos(angle), radius_m * math.sin(angle), angle + math.pi / 2, speed, steering, 2 * speed
         )
         assert verdict.clear and verdict.clearance_m > 0.8
@@ -123,12 +125,11 @@ def test_far_from_every_segment_there_is_nothing_to_guard() -> None:
     assert guard().assess(50.0, 100.0, 0.0, 5.0, 0.0, 5.0).clear
 
 
-def test_the_guards_footprint_is_the_simulated_vehicles() -> None:
-    assert (VEHICLE.width_m, VEHICLE.length_m, VEHICLE.rear_overhang_m) == (
-        PARAMS.width_m,
-        PARAMS.length_m,
-        PARAMS.rear_overhang_m,
-    )
+def test_the_guard_checks_the_vehicle_it_is_given() -> None:
+    """Facing the left edge, a vehicle 0.5 m longer has its nose 0.5 m nearer it."""
+    longer = dataclasses.replace(VEHICLE, length_m=VEHICLE.length_m + 0.5)
+    verdicts = [CorridorGuard(STRAIGHT, v).assess(50.0, -0.8, math.pi / 2, 0.0, 0.0, 1.0) for v in (VEHICLE, longer)]
+    assert verdicts[1].clearance_m == pytest.approx(verdicts[0].clearance_m - 0.5, abs=0.02)
 
 
 @pytest.mark.parametrize("kwargs", [{"horizon_s": 0.0}, {"min_reach_m": -1.0}, {"margin_m": math.nan}])

@@ -1,19 +1,18 @@
-"""Steering limits: the wheel stop and the actuator's rate, the same as the simulated ATV's."""
+"""Steering limits: the wheel stop and the actuator's rate, the vehicle's (brain/vehicle.py)."""
 
 from __future__ import annotations
 
 import pytest
 
+from brain.vehicle import VehicleGeometry
 from modules.control.limits import DEFAULT_WHEELBASE_M, SteeringLimits
-from modules.control.module import ControlConfig
-from modules.sim.vehicle import VehicleParams
 
 
-def test_defaults_match_the_simulated_vehicle() -> None:
-    params, limits, config = VehicleParams(), SteeringLimits(), ControlConfig()
-    assert limits.max_steering_rad == params.max_steering_rad == config.max_steering_rad
-    assert limits.max_steering_rate_radps == params.max_steering_rate_radps == config.max_steering_rate_radps
-    assert DEFAULT_WHEELBASE_M == params.wheelbase_m == config.wheelbase_m
+def test_defaults_are_the_vehicles() -> None:
+    vehicle, limits = VehicleGeometry(), SteeringLimits()
+    assert limits.max_steering_rad == vehicle.max_steering_rad
+    assert limits.max_steering_rate_radps == vehicle.max_steering_rate_radps
+    assert vehicle.wheelbase_m == DEFAULT_WHEELBASE_M
 
 
 def test_the_command_is_clamped_to_the_wheel_stop() -> None:

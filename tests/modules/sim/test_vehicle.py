@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from brain.vehicle import VehicleGeometry
 from modules.sim.vehicle import GRAVITY_MPS2, VehicleParams, VehicleState, step, top_speed_mps
 from protocol.messages import ActuatorCommand
 
@@ -144,7 +145,7 @@ def test_params_reject_non_positive_values_by_name() -> None:
     with pytest.raises(ValueError, match="mass_kg"):
         VehicleParams(mass_kg=0.0)
     with pytest.raises(ValueError, match="max_steering_rad"):
-        VehicleParams(max_steering_rad=2.0)
+        VehicleParams(geometry=VehicleGeometry(max_steering_rad=2.0))
 
 
 # -- the reverse gear ---------------------------------------------------------------------------
