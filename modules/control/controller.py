@@ -12,14 +12,16 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
+from brain.vehicle import VehicleGeometry
 from modules.control.corridor_guard import CorridorGuard, EdgeVerdict
-from modules.control.limits import DEFAULT_WHEELBASE_M, SteeringLimits
+from modules.control.limits import SteeringLimits
 from modules.control.path_tracking import PathTracker, Projection, TrackedPath, wrap_angle
 from modules.control.speed import PiSpeedController, SpeedGains, split_effort
 from modules.control.steering import PdGains, PdHeadingController, StanleyGains, heading_gain, stanley_steering
+from rascal.runtime.config import section, setting
 
 LAWS = ("stanley", "pd")
 NO_GUARD = EdgeVerdict(math.inf, math.inf, math.inf)
@@ -85,32 +87,36 @@ def require_finite(settings: object, names: Iterable[str], *, positive: bool) ->
 
 @dataclass(frozen=True)
 class ControllerSettings:
-    law: str = "stanley"
-    wheelbase_m: float = DEFAULT_WHEELBASE_M
-    limits: SteeringLimits = field(default_factory=SteeringLimits)
-    stanley: StanleyGains = field(default_factory=StanleyGains)
-    pd: PdGains = field(default_factory=PdGains)
-    speed: SpeedGains = field(default_factory=SpeedGains)
-    heading_bandwidth_radps: float = 6.0  # the heading loop's bandwidth cap (see steering.heading_gain)
-    speed_preview_time_s: float = 0.5  # target speed is read this far ahead (actuator lag, braking)
-    speed_preview_min_m: float = 2.0  # ... and at least this far (a path starting at 0 m/s still starts)
-    stop_speed_mps: float = 0.3  # below it, with a zero target, the brake is simply held
-    slow_mode_speed_mps: float = 1.0  # RASCAL: no safe path left -> 1 m/s
-    max_cross_track_m: float = 5.0  # further from the path than this: brake, the path is not ours
+    """The steering law, its gains and the speed loop's (the vehicle it steers is apart:
+    brain/vehicle.py)."""
+
+    law: str = setting("stanley", "steering law: stanley (Hoffmann, Kratos 4.6) or pd (RASCAL heading PD)")
+    stanley: StanleyGains = section(StanleyGains, "the Stanley law's gains")
+    pd: PdGains = section(PdGains, "the PD heading law's gains")
+    speed: SpeedGains = section(SpeedGains, "the PI speed loop's gains")
+    heading_bandwidth_radps: float = setting(
+        6.0, "cap on the heading loop's bandwidth: above bandwidth * wheelbase the heading gain falls as 1/v"
+    )
+    speed_preview_time_s: float = setting(0.5, "target speed is read this many seconds of travel ahead")
+    speed_preview_min_m: float = setting(2.0, "... and at least this far (a path starting at 0 m/s still starts)")
+    stop_speed_mps: float = setting(0.3, "below it, with a zero target, the brake is simply held")
+    slow_mode_speed_mps: float = setting(1.0, "speed cap while the path is in slow mode (RASCAL: 1 m/s)")
+    max_cross_track_m: float = setting(5.0, "further from the path than this: brake (off path)")
     # The steering asks for more than the wheels' limit: the path turns tighter than the vehicle
     # can at this speed (or the vehicle is rejoining it). Slow to the speed at which the tightest
     # turn takes this lateral acceleration, until the steering has room again.
-    saturated_share: float = 0.9  # of max steering
-    saturated_lateral_accel_mps2: float = 2.0
-    window_back_m: float = 2.0
-    window_ahead_m: float = 6.0
-    curvature_window_m: float = 2.0
+    saturated_share: float = setting(0.9, "steering asked beyond this share of the wheel stop is saturated")
+    saturated_lateral_accel_mps2: float = setting(
+        2.0, "saturated, slow to the speed at which the tightest turn takes this lateral acceleration"
+    )
+    window_back_m: float = setting(2.0, "the path is searched for the vehicle this far back ...")
+    window_ahead_m: float = setting(6.0, "... and this far ahead of where it was")
+    curvature_window_m: float = setting(2.0, "path curvature is averaged over this length")
 
     def __post_init__(self) -> None:
         if self.law not in LAWS:
             raise ValueError(f"controller law must be one of {LAWS}, not {self.law!r}")
         positive = (
-            "wheelbase_m",
             "heading_bandwidth_radps",
             "speed_preview_min_m",
             "stop_speed_mps",
@@ -132,8 +138,10 @@ class ControllerSettings:
 class VehicleController:
     """Path tracking, heading and speed control with the steering limits, one step at a time."""
 
-    def __init__(self, settings: ControllerSettings | None = None) -> None:
+    def __init__(self, settings: ControllerSettings | None = None, vehicle: VehicleGeometry | None = None) -> None:
         self.settings = settings or ControllerSettings()
+        self.vehicle = vehicle or VehicleGeometry()
+        self.limits = SteeringLimits(self.vehicle.max_steering_rad, self.vehicle.max_steering_rate_radps)
         s = self.settings
         self.tracker = PathTracker(s.window_back_m, s.window_ahead_m, max(s.curvature_window_m, 1e-3))
         self.pd = PdHeadingController(s.pd)
@@ -172,7 +180,7 @@ class VehicleController:
 
         # The reference point: Stanley works at the front axle (its heading term then holds a
         # curve with no cross-track error), the PD at the rear axle it steers around.
-        offset = s.wheelbase_m if s.law == "stanley" else 0.0
+        offset = self.vehicle.wheelbase_m if s.law == "stanley" else 0.0
         ref_east = pose.east_m + offset * math.cos(pose.yaw_rad)
         ref_north = pose.north_m + offset * math.sin(pose.yaw_rad)
         where = self.tracker.locate(ref_east, ref_north, pose.yaw_rad, travelled)
@@ -182,7 +190,7 @@ class VehicleController:
             out = self.brake(f"off path: {where.cross_track_m:+.1f} m from it", Mode.OFF_PATH, dt_s)
             return out._replace(cross_track_m=where.cross_track_m)
 
-        gain = heading_gain(speed, s.wheelbase_m, s.heading_bandwidth_radps)
+        gain = heading_gain(speed, self.vehicle.wheelbase_m, s.heading_bandwidth_radps)
         if s.law == "stanley":
             heading_error = wrap_angle(where.heading_rad - pose.yaw_rad)
             target = stanley_steering(
@@ -194,7 +202,7 @@ class VehicleController:
             heading_error = wrap_angle(bearing - pose.yaw_rad)
             target = gain * self.pd.steer(heading_error, dt_s)
         self._steering_wanted_rad = target
-        self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
+        self.steering_rad = self.limits.apply(self.steering_rad, target, dt_s)
 
         target_speed = self._target_speed(where, speed)
         edge = self._check_edge(pose, speed, target_speed)
@@ -243,9 +251,9 @@ class VehicleController:
             target = 0.0
         if self.slow_mode:
             target = min(target, s.slow_mode_speed_mps)
-        limit = s.limits.max_steering_rad
+        limit = self.limits.max_steering_rad
         if abs(self._steering_wanted_rad) >= s.saturated_share * limit:
-            tightest_curvature = math.tan(limit) / s.wheelbase_m
+            tightest_curvature = math.tan(limit) / self.vehicle.wheelbase_m
             target = min(target, math.sqrt(s.saturated_lateral_accel_mps2 / tightest_curvature))
         return target
 

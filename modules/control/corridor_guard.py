@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from brain.corridor import Corridor
 from brain.planning.bounds import Box, LocalCorridor
 from brain.vehicle import VehicleGeometry
+from rascal.runtime.config import setting
 
 FloatArray = NDArray[np.float64]
 
@@ -45,10 +46,14 @@ _FRACTIONS = np.linspace(0.0, 1.0, SAMPLES + 1)
 
 @dataclass(frozen=True)
 class GuardSettings:
-    horizon_s: float = 0.6  # seconds of travel predicted: brake lag, a control step, and some braking
-    min_reach_m: float = 0.5  # ... and at least this far
-    margin_m: float = 0.3  # the speed is capped when the footprint would come this near the edge
-    creep_mps: float = 0.5  # the lowest cap: still moving, so the steering can turn it away
+    horizon_s: float = setting(
+        0.6, "the footprint is predicted this many seconds of travel ahead on the present steering"
+    )
+    min_reach_m: float = setting(0.5, "... and at least this far (a standing vehicle checks its first half metre)")
+    margin_m: float = setting(
+        0.3, "the speed is capped when the footprint would come this near the edge (or half as near as now)"
+    )
+    creep_mps: float = setting(0.5, "the lowest cap, short of braking: still moving, so the steering can turn it away")
 
     def __post_init__(self) -> None:
         for name in ("horizon_s", "min_reach_m", "margin_m", "creep_mps"):

@@ -17,13 +17,10 @@ from pathlib import Path as FilePath
 
 from brain.course_config import load_course
 from brain.vehicle import VehicleGeometry
-from modules.control.controller import LAWS, ControllerSettings, Mode, Output, Pose
+from modules.control.controller import ControllerSettings, Mode, Output, Pose
 from modules.control.corridor_guard import CorridorGuard, GuardSettings
-from modules.control.limits import SteeringLimits
 from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
 from modules.control.reverse import ReversingController
-from modules.control.speed import SpeedGains
-from modules.control.steering import PdGains, StanleyGains
 from modules.control.stop_latch import StopLatch, StopOrder
 from protocol import channels
 from protocol.codec import Envelope
@@ -37,80 +34,26 @@ from rascal.runtime.rtdb import Validity
 @dataclass(frozen=True)
 class ControlConfig:
     rate_hz: float = setting(50.0, "actuator command rate")
-    controller: str = setting("stanley", "steering law: stanley (Hoffmann, Kratos 4.6) or pd (RASCAL heading PD)")
     state_max_age_s: float = setting(0.2, "VEHICLE_STATE older than this is stale: fail-safe brake")
     path_max_age_s: float = setting(0.5, "PATH older than this is stale: fail-safe brake")
-    stanley_gain: float = setting(2.5, "Stanley k, 1/s: steering = psi + atan(k e / (k_soft + v))")
-    stanley_softening_mps: float = setting(1.0, "Stanley k_soft")
-    stanley_yaw_damping_s: float = setting(0.0, "Hoffmann yaw-rate damping k_d,yaw (0: off)")
-    pd_kp: float = setting(1.0, "PD: wheel angle per radian of heading error to the look-ahead point")
-    pd_kd_s: float = setting(0.1, "PD: wheel angle per rad/s of heading-error rate")
-    pd_lookahead_min_m: float = setting(2.5, "PD: shortest look-ahead distance")
-    pd_lookahead_time_s: float = setting(0.4, "PD: look-ahead distance per m/s of speed")
-    heading_bandwidth_radps: float = setting(
-        6.0, "cap on the heading loop's bandwidth: above bandwidth * wheelbase the heading gain falls as 1/v"
-    )
-    speed_kp: float = setting(0.5, "PI speed: effort per m/s of error (effort > 0 throttle, < 0 brake)")
-    speed_ki: float = setting(0.2, "PI speed: effort per m/s of error per second")
-    speed_deadband: float = setting(0.03, "efforts this small neither drive nor brake")
-    speed_preview_time_s: float = setting(0.5, "target speed is read this many seconds of travel ahead")
-    max_cross_track_m: float = setting(5.0, "further from the path than this: brake (off path)")
     heading_smoothing_m: float = setting(
         DEFAULT_HEADING_SMOOTHING_M, "path heading is averaged over +- this (sharp corners start turning early)"
     )
-    slow_mode_speed_mps: float = setting(1.0, "speed cap while the path is in slow mode (RASCAL: 1 m/s)")
-    vehicle: VehicleGeometry = section(VehicleGeometry, "the vehicle steered: wheelbase, steering limits, footprint")
     stop_file: str = setting(
         "", "where the operator's stop/pause outlives a restart (default: control.stop.json in the run/state dir)"
     )
     course: str = setting("", "RDDF file whose corridor the guard keeps the vehicle in (empty: no corridor guard)")
     origin: str = setting("", "ENU origin 'lat,lon[,alt]' overriding the course's first waypoint")
-    corridor_horizon_s: float = setting(
-        0.6, "corridor guard: the footprint is predicted this many seconds of travel ahead on the present steering"
-    )
-    corridor_min_reach_m: float = setting(0.5, "corridor guard: ... and at least this far (a standing vehicle)")
-    corridor_margin_m: float = setting(
-        0.3, "corridor guard: speed capped when the footprint would come this near the edge (or half as near as now)"
-    )
-    corridor_creep_mps: float = setting(0.5, "corridor guard: the lowest speed cap, short of braking")
+    controller: ControllerSettings = section(ControllerSettings, "the steering law, its gains and the speed loop")
+    guard: GuardSettings = section(GuardSettings, "the corridor guard: how far ahead, how near the edge")
+    vehicle: VehicleGeometry = section(VehicleGeometry, "the vehicle steered: wheelbase, steering limits, footprint")
 
     def __post_init__(self) -> None:
-        if self.controller not in LAWS:
-            raise ConfigError(f"controller must be one of {list(LAWS)}, not {self.controller!r}")
         for name in ("rate_hz", "state_max_age_s", "path_max_age_s"):
             if not getattr(self, name) > 0.0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)!r}")
         if not self.heading_smoothing_m >= 0.0:
             raise ConfigError(f"heading_smoothing_m must not be negative, got {self.heading_smoothing_m!r}")
-        try:
-            self.controller_settings()
-            self.guard_settings()
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from exc
-
-    def controller_settings(self) -> ControllerSettings:
-        return ControllerSettings(
-            law=self.controller,
-            wheelbase_m=self.vehicle.wheelbase_m,
-            heading_bandwidth_radps=self.heading_bandwidth_radps,
-            limits=SteeringLimits(self.vehicle.max_steering_rad, self.vehicle.max_steering_rate_radps),
-            stanley=StanleyGains(self.stanley_gain, self.stanley_softening_mps, self.stanley_yaw_damping_s),
-            pd=PdGains(
-                kp=self.pd_kp,
-                kd_s=self.pd_kd_s,
-                lookahead_min_m=self.pd_lookahead_min_m,
-                lookahead_time_s=self.pd_lookahead_time_s,
-            ),
-            speed=SpeedGains(kp=self.speed_kp, ki=self.speed_ki, deadband=self.speed_deadband),
-            speed_preview_time_s=self.speed_preview_time_s,
-            slow_mode_speed_mps=self.slow_mode_speed_mps,
-            max_cross_track_m=self.max_cross_track_m,
-        )
-
-    def guard_settings(self) -> GuardSettings:
-        return GuardSettings(
-            self.corridor_horizon_s, self.corridor_min_reach_m, self.corridor_margin_m, self.corridor_creep_mps
-        )
 
 
 class Control(Module):
@@ -160,12 +103,12 @@ class Control(Module):
     def on_start(self) -> None:
         config: ControlConfig = self.config
         self.dt_s = 1.0 / config.rate_hz
-        self.controller = ReversingController(config.controller_settings())
+        self.controller = ReversingController(config.controller, vehicle=config.vehicle)
         self.state_in = self.input(channels.VEHICLE_STATE, config.state_max_age_s)
         self.path_in = self.input(channels.PATH, config.path_max_age_s)
         if config.course:
             corridor = load_course(config.course, config.origin).corridor
-            self.controller.guard = CorridorGuard(corridor, config.vehicle, config.guard_settings())
+            self.controller.guard = CorridorGuard(corridor, config.vehicle, config.guard)
         self.at_edge = False  # stopped for the corridor's edge, until the guard sees its margin kept again
         self.latch = StopLatch(_stop_file(config.stop_file))
         order, problem = self.latch.load()
@@ -301,8 +244,8 @@ class Control(Module):
     def status_detail(self) -> str:
         out = self.last
         if out is None:
-            return f"{self.config.controller}: no command yet"
-        text = f"{self.config.controller} {out.mode.value}: "
+            return f"{self.config.controller.law}: no command yet"
+        text = f"{self.config.controller.law} {out.mode.value}: "
         if not math.isnan(out.cross_track_m):
             text += f"cte {out.cross_track_m:+.2f} m, speed err {out.speed_error_mps:+.2f} m/s, "
         text += f"steer {out.steering_rad:+.3f} rad, sent {self.commands}"

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from brain.vehicle import VehicleGeometry
 from modules.control.controller import ControllerSettings, Mode, Output, Pose, VehicleController, require_finite
 from modules.control.path_tracking import Projection, TrackedPath, wrap_angle
 
@@ -48,8 +49,13 @@ class ReversingController(VehicleController):
     """The vehicle controller with a reverse gear: forward paths exactly as VehicleController
     drives them; reverse paths at the rear axle as above; a stop before every gear change."""
 
-    def __init__(self, settings: ControllerSettings | None = None, reverse: ReverseSettings | None = None) -> None:
-        super().__init__(settings)
+    def __init__(
+        self,
+        settings: ControllerSettings | None = None,
+        reverse: ReverseSettings | None = None,
+        vehicle: VehicleGeometry | None = None,
+    ) -> None:
+        super().__init__(settings, vehicle)
         self.reverse_settings = reverse or ReverseSettings()
         self.reverse = False  # the path asks to be driven backwards
         self.reverse_gear = False  # the gear commanded
@@ -94,9 +100,9 @@ class ReversingController(VehicleController):
         curvature = (
             where.curvature_1pm + r.heading_gain_1pm * heading_error - r.cross_track_gain_1pm2 * where.cross_track_m
         )
-        target = -math.atan(s.wheelbase_m * curvature)
+        target = -math.atan(self.vehicle.wheelbase_m * curvature)
         self._steering_wanted_rad = target
-        self.steering_rad = s.limits.apply(self.steering_rad, target, dt_s)
+        self.steering_rad = self.limits.apply(self.steering_rad, target, dt_s)
 
         return self._speed_step(where, speed, self._backing_speed(where), heading_error, dt_s)._replace(reverse=True)
 

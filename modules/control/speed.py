@@ -12,15 +12,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from modules.control.limits import clamp
+from rascal.runtime.config import setting
 
 
 @dataclass(frozen=True)
 class SpeedGains:
-    kp: float = 0.5  # effort per m/s of speed error
-    ki: float = 0.2  # effort per m/s of error per second
-    integral_min: float = -0.5  # the integrator's share of the effort is held in these bounds
-    integral_max: float = 1.0
-    deadband: float = 0.03  # efforts this small neither drive nor brake (no throttle/brake chatter)
+    kp: float = setting(0.5, "effort per m/s of speed error (effort > 0 throttle, < 0 brake)")
+    ki: float = setting(0.2, "effort per m/s of error per second")
+    integral_min: float = setting(-0.5, "the integrator's share of the effort is held above this ...")
+    integral_max: float = setting(1.0, "... and below this")
+    deadband: float = setting(0.03, "efforts this small neither drive nor brake (no throttle/brake chatter)")
 
     def __post_init__(self) -> None:
         if not (self.kp >= 0.0 and self.ki >= 0.0 and self.kp + self.ki > 0.0):

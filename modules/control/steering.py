@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from rascal.runtime.config import setting
+
 
 def heading_gain(speed_mps: float, wheelbase_m: float, bandwidth_radps: float) -> float:
     """Gain on the heading term that keeps the heading loop's bandwidth at most ``bandwidth_radps``.
@@ -27,9 +29,9 @@ def heading_gain(speed_mps: float, wheelbase_m: float, bandwidth_radps: float) -
 class StanleyGains:
     """Gains of the Hoffmann et al. (2007) law, evaluated at the front axle."""
 
-    gain: float = 2.5  # k: how hard a cross-track error turns the wheels, 1/s
-    softening_mps: float = 1.0  # k_soft: keeps the law finite and calm at walking speed
-    yaw_damping_s: float = 0.0  # k_d,yaw: steers against yaw rate the path does not ask for
+    gain: float = setting(2.5, "k, 1/s: how hard a cross-track error turns the wheels (psi + atan(k e / (k_soft + v)))")
+    softening_mps: float = setting(1.0, "k_soft: keeps the law finite and calm at walking speed")
+    yaw_damping_s: float = setting(0.0, "k_d,yaw: steers against yaw rate the path does not ask for (0: off)")
 
     def __post_init__(self) -> None:
         if not (self.gain > 0.0 and self.softening_mps > 0.0 and self.yaw_damping_s >= 0.0):
@@ -64,11 +66,11 @@ def stanley_steering(
 class PdGains:
     """RASCAL's heading controller: PD on the error to the bearing of a look-ahead point."""
 
-    kp: float = 1.0  # wheel angle per radian of heading error
-    kd_s: float = 0.1  # wheel angle per rad/s of heading-error rate
-    derivative_tau_s: float = 0.05  # low-pass on the differentiated error (measured yaw is noisy)
-    lookahead_min_m: float = 2.5
-    lookahead_time_s: float = 0.4  # look-ahead distance grows with speed: lookahead_time_s * v
+    kp: float = setting(1.0, "wheel angle per radian of heading error to the look-ahead point")
+    kd_s: float = setting(0.1, "wheel angle per rad/s of heading-error rate")
+    derivative_tau_s: float = setting(0.05, "low-pass on the differentiated error (measured yaw is noisy)")
+    lookahead_min_m: float = setting(2.5, "shortest look-ahead distance")
+    lookahead_time_s: float = setting(0.4, "look-ahead distance per m/s of speed")
 
     def __post_init__(self) -> None:
         if not (self.kp > 0.0 and self.kd_s >= 0.0 and self.derivative_tau_s >= 0.0):

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from brain.vehicle import VehicleGeometry
 from modules.control.controller import ControllerSettings, Mode, Pose, VehicleController
-from modules.control.limits import SteeringLimits
 from modules.control.path_tracking import TrackedPath
 
 DT = 0.02
@@ -20,8 +20,10 @@ def straight(speed_mps: float = 5.0, length_m: float = 50.0) -> TrackedPath:
     return TrackedPath(east, np.zeros_like(east), np.full_like(east, speed_mps))
 
 
-def controller(path: TrackedPath | None = None, **settings) -> VehicleController:  # type: ignore[no-untyped-def]
-    c = VehicleController(ControllerSettings(**settings))
+def controller(  # type: ignore[no-untyped-def]
+    path: TrackedPath | None = None, vehicle: VehicleGeometry | None = None, **settings
+) -> VehicleController:
+    c = VehicleController(ControllerSettings(**settings), vehicle)
     c.set_path(path or straight())
     return c
 
@@ -35,7 +37,7 @@ def test_a_vehicle_left_of_the_path_steers_right_and_one_right_of_it_left(law: s
 
 
 def test_steering_is_rate_and_angle_limited() -> None:
-    c = controller(limits=SteeringLimits(max_steering_rad=0.5, max_steering_rate_radps=0.8))
+    c = controller(vehicle=VehicleGeometry(max_steering_rad=0.5, max_steering_rate_radps=0.8))
     outs = [c.drive(Pose(5.0, -4.0, 0.0, 2.0), DT) for _ in range(60)]
     assert outs[0].steering_rad == pytest.approx(0.8 * DT)
     assert max(abs(b.steering_rad - a.steering_rad) for a, b in itertools.pairwise(outs)) <= 0.8 * DT + 1e-12
@@ -101,7 +103,7 @@ def test_driving_without_a_path_is_a_local_error() -> None:
         VehicleController().drive(Pose(0.0, 0.0, 0.0, 0.0), DT)
 
 
-@pytest.mark.parametrize("kwargs", [{"law": "pure_pursuit"}, {"wheelbase_m": 0.0}, {"speed_preview_time_s": -1.0}])
+@pytest.mark.parametrize("kwargs", [{"law": "pure_pursuit"}, {"window_ahead_m": 0.0}, {"speed_preview_time_s": -1.0}])
 def test_bad_settings_are_refused(kwargs: dict[str, object]) -> None:
     with pytest.raises(ValueError):
         ControllerSettings(**kwargs)  # type: ignore[arg-type]
@@ -110,8 +112,8 @@ def test_bad_settings_are_refused(kwargs: dict[str, object]) -> None:
 def test_saturated_steering_slows_to_the_tightest_turns_safe_speed() -> None:
     """3 m beside a 10 m/s path the steering law asks for more than the wheels can give: the
     target drops to the speed at which the tightest turn takes 2 m/s^2; on the path it does not."""
-    settings = ControllerSettings()
-    tightest_speed = math.sqrt(2.0 * settings.wheelbase_m / math.tan(settings.limits.max_steering_rad))
+    vehicle = VehicleGeometry()
+    tightest_speed = math.sqrt(2.0 * vehicle.wheelbase_m / math.tan(vehicle.max_steering_rad))
     off = controller(straight(10.0)).drive(Pose(5.0, -3.0, 0.0, 8.0), DT)
     on = controller(straight(10.0)).drive(Pose(5.0, 0.0, 0.0, 8.0), DT)
     assert off.target_speed_mps == pytest.approx(tightest_speed) and tightest_speed < 2.5

@@ -28,7 +28,7 @@ from protocol.messages import (
 from protocol.transport import MemTransport
 from rascal.runtime.bus import Bus
 from rascal.runtime.clock import ManualClock
-from rascal.runtime.config import ConfigError
+from rascal.runtime.config import ConfigError, build_config
 from rascal.runtime.module import Runtime
 
 TICK_NS = 20_000_000
@@ -83,7 +83,7 @@ class Harness:
 def make(**config: Any) -> Harness:
     hub, keyring, clock = uuid.uuid4().hex, Keyring.generate(), ManualClock()
     runtime = Runtime(Bus(MemTransport(hub), 40, keyring, clock), clock)
-    control = Control(ControlConfig(**config), runtime)
+    control = Control(build_config(ControlConfig, config), runtime)
     control.on_start()
     harness = Harness(control, clock, Bus(MemTransport(hub), 20, keyring, clock))
     listener = Bus(MemTransport(hub), 99, keyring, clock)
@@ -194,7 +194,7 @@ def test_an_unknown_stop_mode_is_held_as_a_pause() -> None:
 
 
 def test_the_pd_law_is_selectable() -> None:
-    h = make(controller="pd")
+    h = make(controller={"law": "pd"})
     out = h.drive(30)
     assert out.steering_rad < 0.0 and out.throttle > 0.0
     assert h.control.status_detail().startswith("pd drive")
@@ -236,15 +236,16 @@ def test_with_the_course_it_brakes_short_of_the_corridor_edge_and_reports_each_s
 
 
 @pytest.mark.parametrize(
-    "config",
+    ("config", "name"),
     [
-        {"controller": "bang_bang"},
-        {"rate_hz": 0.0},
-        {"path_max_age_s": -1.0},
-        {"stanley_gain": 0.0},
-        {"corridor_horizon_s": 0.0},
+        ({"controller": {"law": "bang_bang"}}, "bang_bang"),
+        ({"rate_hz": 0.0}, "rate_hz"),
+        ({"path_max_age_s": -1.0}, "path_max_age_s"),
+        ({"controller": {"stanley": {"gain": 0.0}}}, r"control\.controller\.stanley: Stanley gains"),
+        ({"guard": {"horizon_s": 0.0}}, r"control\.guard: corridor guard horizon_s"),
+        ({"vehicle": {"wheelbase_m": 0.0}}, r"control\.vehicle: vehicle\.wheelbase_m"),
     ],
 )
-def test_bad_configuration_is_refused_by_name(config: dict[str, Any]) -> None:
-    with pytest.raises(ConfigError):
-        ControlConfig(**config)
+def test_bad_configuration_is_refused_by_name(config: dict[str, Any], name: str) -> None:
+    with pytest.raises(ConfigError, match=name):
+        build_config(ControlConfig, config, "control")
