@@ -18,8 +18,9 @@ import numpy as np
 from rich.console import Console
 
 from benchmarks.report import Table, print_table
+from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, cast, sensor_pose
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, ScanSpec, Scene, cast, sensor_pose
 from modules.sim.world import Shape, WorldObstacle
 
 SCENE_SIZES = (25, 100)
@@ -41,7 +42,7 @@ def scene_obstacles(count: int, rng: np.random.Generator) -> list[WorldObstacle]
     return obstacles
 
 
-def plain_ranges(obstacles: list[WorldObstacle], pose: Pose2D, spec: ScanSpec) -> list[float]:
+def plain_ranges(obstacles: list[WorldObstacle], pose: Pose, spec: ScanSpec) -> list[float]:
     """The anchor: every ray against every obstacle, one float at a time."""
     origin, yaw = sensor_pose(pose, MOUNT)
     ox, oy = float(origin[0]), float(origin[1])
@@ -86,7 +87,7 @@ def measure(count: int, scans: int, plain_scans: int, spec: ScanSpec) -> tuple[l
     rng = np.random.default_rng(count)
     obstacles = scene_obstacles(count, rng)
     scene = Scene.from_obstacles(obstacles)
-    poses = [Pose2D(0.0, 0.0, float(yaw)) for yaw in rng.uniform(-math.pi, math.pi, scans)]
+    poses = [Pose(0.0, 0.0, float(yaw)) for yaw in rng.uniform(-math.pi, math.pi, scans)]
     cast_s, total_s, clusters = [], [], 0
     for pose in poses:
         start = time.perf_counter()

@@ -30,7 +30,8 @@ import numpy as np
 from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
-from modules.sim.collision import Pose, clearance_m, collides, footprint
+from brain.pose import PoseLike
+from modules.sim.collision import clearance_m, collides, footprint
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.simulator import WorldState
 from modules.sim.vehicle import VehicleParams, VehicleState, step
@@ -145,7 +146,7 @@ class VectorisedObstacles:
         self.cylinder_north = column(cylinders, lambda o: o.north_m)
         self.cylinder_radius_sq = column(cylinders, lambda o: o.radius_m**2)
 
-    def collides(self, pose: Pose, params: VehicleParams) -> WorldObstacle | None:
+    def collides(self, pose: PoseLike, params: VehicleParams) -> WorldObstacle | None:
         east, north, ca, sa, half_length, half_width = footprint(pose, params)
         cb, sb = self.box_cos, self.box_sin
         box_length, box_width = self.box_half_length, self.box_half_width

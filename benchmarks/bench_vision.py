@@ -21,12 +21,12 @@ import numpy as np
 from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
+from brain.pose import Pose
 from modules.esvs.camera import StereoFrame, render_pair
 from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.vision import STAGES, VisionParams, process
 from modules.esvs.vision.band import Band, BandParams, band_disparity, band_rows
 from modules.esvs.vision.disparity import REALTIME, MatcherParams
-from modules.lidar.raycast import Pose2D
 from modules.sim.scenario import load_scenario
 from modules.sim.world import LaneBorderLine, Shape, Texture, World, WorldObstacle
 
@@ -202,7 +202,7 @@ def lane_table(frames: list[StereoFrame], lines: tuple[LaneBorderLine, ...]) -> 
     return table
 
 
-def _line_in_vehicle_frame(line: LaneBorderLine, pose: Pose2D, xs: np.ndarray) -> np.ndarray | None:
+def _line_in_vehicle_frame(line: LaneBorderLine, pose: Pose, xs: np.ndarray) -> np.ndarray | None:
     """Lateral position of a polyline at the given forward distances, None unless the line
     runs steadily forward (or back) through all of them."""
     points = np.asarray(line.points_m)

@@ -6,9 +6,10 @@ planner a :class:`CostMap` (a GridWindow plus float32 ``hazard_probability`` and
 
 from brain.fusion.cost import CostConfig, CostMap, build_cost_map
 from brain.fusion.fusion import FusionConfig, FusionStats, HazardFusion
-from brain.fusion.poses import Pose, PoseHistory
+from brain.fusion.poses import PoseHistory
 from brain.fusion.sensors import DEFAULT_SENSOR_MODELS, SensorClass, SensorModel
 from brain.fusion.snapshot import SnapshotError, decode_snapshot, encode_snapshot
+from brain.pose import Pose
 
 __all__ = [
     "DEFAULT_SENSOR_MODELS",

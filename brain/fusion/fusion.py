@@ -30,13 +30,14 @@ import numpy as np
 
 from brain.fusion.cost import CostConfig, CostMap, build_cost_map, hazard_probability
 from brain.fusion.evidence import EvidenceLayers, Layer
-from brain.fusion.poses import Pose, PoseHistory, heading_std_rad
+from brain.fusion.poses import PoseHistory, heading_std_rad
 from brain.fusion.profile import classify_profile
 from brain.fusion.raster import Stamp, boxes, rectangles, sensor_frame, strips, vehicle_frame, view_polygon
 from brain.fusion.sensors import DEFAULT_SENSOR_MODELS, SensorClass, SensorModel
 from brain.fusion.snapshot import encode_snapshot
 from brain.fusion.window import WindowPlacement
 from brain.grid import GridWindow
+from brain.pose import Pose
 from protocol.messages import Frame, GroundSweep, LaneBorders, MapSnapshot, ObstacleList, SurfaceProfile, VehicleState
 from rascal.runtime.config import setting
 

@@ -15,19 +15,12 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from brain.pose import Pose
 from protocol.messages import NavQuality, VehicleState
 from rascal.runtime.angles import wrap_angle
 
 COVARIANCE_SIZE = 25  # VehicleState.covariance: row-major 5x5 over east, north, yaw, speed, yaw rate
 YAW_VARIANCE_AT = 12
-
-
-class Pose(NamedTuple):
-    """The vehicle frame's origin (rear axle centre) and heading in ENU at one instant."""
-
-    east_m: float
-    north_m: float
-    yaw_rad: float
 
 
 def heading_std_rad(state: VehicleState) -> float:

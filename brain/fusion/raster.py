@@ -17,9 +17,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from brain.fusion.poses import Pose
 from brain.fusion.sensors import SensorModel
 from brain.grid import GridWindow
+from brain.pose import Pose
 
 FloatArray = NDArray[np.float64]
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from brain.fusion.poses import Pose
 from brain.grid import GridWindow
+from brain.pose import Pose
 
 HYSTERESIS_RAD = math.radians(10.0)
 

@@ -55,6 +55,7 @@ from brain.planning.pursuit import pursue
 from brain.planning.search import Lattice, SearchResult, search
 from brain.planning.smoothing import FreeCells, smooth
 from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, steering_rate_cap, travel_time_s
+from brain.pose import PoseLike
 from protocol.messages import Path, PathPoint
 
 FloatArray = NDArray[np.float64]
@@ -72,17 +73,8 @@ class PlanMode(enum.Enum):
     STOP = "stop"  # nothing reachable (or the course is done): stand still
 
 
-class Pose(Protocol):
-    """What the planner reads of the vehicle; `protocol.messages.VehicleState` fits."""
-
-    @property
-    def east_m(self) -> float: ...
-
-    @property
-    def north_m(self) -> float: ...
-
-    @property
-    def yaw_rad(self) -> float: ...
+class MovingPose(PoseLike, Protocol):
+    """What the planner reads of the vehicle: its pose and speed; `protocol.messages.VehicleState` fits."""
 
     @property
     def speed_mps(self) -> float: ...
@@ -155,7 +147,7 @@ class Planner:
 
     def plan(
         self,
-        pose: Pose,
+        pose: MovingPose,
         window: GridWindow,
         hazard_probability: ArrayLike,
         cost: ArrayLike,

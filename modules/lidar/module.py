@@ -11,9 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
 from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profile_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, ScanSpec, Scene, add_noise, cast
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, ScanSpec, Scene, add_noise, cast
 from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.world import FaultKind, World
@@ -157,7 +158,7 @@ class Lidar(Module):
         the same output however the process happens to be scheduled."""
         assert self.world is not None
         sensor = self.config.sensor
-        pose = Pose2D(truth.east_m, truth.north_m, truth.yaw_rad)
+        pose = Pose(truth.east_m, truth.north_m, truth.yaw_rad)
         if sensor in HORIZONTAL_MOUNTS:
             scan = cast(self.scene, pose, HORIZONTAL_MOUNTS[sensor], self.spec)
             if scan.returns.size:  # nothing in view, nothing to draw: no generator either

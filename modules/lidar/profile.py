@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from modules.lidar.raycast import Pose2D
+from brain.pose import Pose
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import SurfaceProfile
 
@@ -98,7 +98,7 @@ def ground_height(
 
 def profile_scan(
     hazards: tuple[TerrainHazard, ...] | list[TerrainHazard],
-    pose: Pose2D,
+    pose: Pose,
     mount: VerticalMount,
     sensor: int,
     rng: np.random.Generator | None = None,

@@ -13,23 +13,15 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
+from brain.pose import Pose
 from modules.sim.world import Shape, WorldObstacle
 
 # Directions this close to parallel to a box face are nudged off it, so the slab test never
 # divides zero by zero; the nudge moves a hit by far less than a nanometre.
 _PARALLEL_EPS = 1e-12
-
-
-class Pose2D(NamedTuple):
-    """The vehicle frame's origin (rear axle centre) and heading in ENU."""
-
-    east_m: float
-    north_m: float
-    yaw_rad: float
 
 
 @dataclass(frozen=True)
@@ -147,7 +139,7 @@ class Scan:
         return index, np.column_stack((r * np.cos(b), r * np.sin(b)))
 
 
-def sensor_pose(pose: Pose2D, mount: Mount) -> tuple[np.ndarray, float]:
+def sensor_pose(pose: Pose, mount: Mount) -> tuple[np.ndarray, float]:
     """The sensor's ENU position and boresight yaw when the vehicle is at ``pose``."""
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     origin = np.array((pose.east_m + c * mount.x_m - s * mount.y_m, pose.north_m + s * mount.x_m + c * mount.y_m))
@@ -156,7 +148,7 @@ def sensor_pose(pose: Pose2D, mount: Mount) -> tuple[np.ndarray, float]:
 
 def cast(
     scene: Scene,
-    pose: Pose2D,
+    pose: Pose,
     mount: Mount,
     spec: ScanSpec | None = None,
     rng: np.random.Generator | None = None,

@@ -43,8 +43,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from brain.pose import Pose
 from modules.lidar.profile import GROUND_STEP_M, first_hits, ground_height
-from modules.lidar.raycast import Pose2D, Scene, descending_ray_ranges
+from modules.lidar.raycast import Scene, descending_ray_ranges
 from modules.sim.world import TerrainHazard
 from protocol.messages import GroundStretch, GroundSweep
 
@@ -132,7 +133,7 @@ def _circles(hazards: tuple[TerrainHazard, ...]) -> _Circles:
 def sweep_scan(
     hazards: tuple[TerrainHazard, ...] | list[TerrainHazard],
     scene: Scene,
-    pose: Pose2D,
+    pose: Pose,
     mount: SweepMount = SWEEP_MOUNT,
     rng: np.random.Generator | None = None,
     noise_scale: float = 1.0,

@@ -10,24 +10,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
+from brain.pose import PoseLike
 from modules.sim.vehicle import VehicleParams
 from modules.sim.world import Shape, WorldObstacle
-
-
-class Pose(Protocol):
-    """A rear axle pose in ENU; ``VehicleState`` fits."""
-
-    @property
-    def east_m(self) -> float: ...
-
-    @property
-    def north_m(self) -> float: ...
-
-    @property
-    def yaw_rad(self) -> float: ...
-
 
 # A rectangle as a plain tuple: centre east and north, cosine and sine of its yaw, half length
 # along the yaw and half width across it. The hot paths unpack it in one step instead of paying
@@ -60,7 +47,7 @@ class OrientedRect(NamedTuple):
         return _corners(self)
 
 
-def footprint(pose: Pose, params: VehicleParams) -> OrientedRect:
+def footprint(pose: PoseLike, params: VehicleParams) -> OrientedRect:
     """The vehicle's outline at ``pose`` (the pose is the rear axle; the outline's centre is ahead of it)."""
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     ahead_m = 0.5 * params.length_m - params.rear_overhang_m
@@ -74,7 +61,7 @@ def obstacle_rect(obstacle: WorldObstacle) -> OrientedRect:
     return OrientedRect._make(_box(obstacle))
 
 
-def collides(pose: Pose, obstacles: Sequence[WorldObstacle], params: VehicleParams) -> WorldObstacle | None:
+def collides(pose: PoseLike, obstacles: Sequence[WorldObstacle], params: VehicleParams) -> WorldObstacle | None:
     """The first obstacle (in sequence order) the vehicle's footprint at ``pose`` touches or overlaps."""
     rect = footprint(pose, params)
     east_m, north_m, _, _, half_length_m, half_width_m = rect
@@ -93,7 +80,7 @@ def collides(pose: Pose, obstacles: Sequence[WorldObstacle], params: VehiclePara
     return None
 
 
-def clearance_m(pose: Pose, obstacle: WorldObstacle, params: VehicleParams) -> float:
+def clearance_m(pose: PoseLike, obstacle: WorldObstacle, params: VehicleParams) -> float:
     """Distance between the vehicle's footprint at ``pose`` and ``obstacle``; 0 when they touch or overlap."""
     return distance_m(footprint(pose, params), obstacle)
 

@@ -21,12 +21,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from brain.pose import Pose
 from modules.esvs.camera import solids, terrain
 from modules.esvs.camera.rays import RigRays, rig_rays
 from modules.esvs.camera.road import RoadDecal, draw_decal, lane_arrays
 from modules.esvs.camera.textures import FIXED_ONE, TextureSet, texture_set
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
-from modules.lidar.raycast import Pose2D
 from modules.sim.world import TerrainHazard, Texture, World, WorldObstacle
 
 # Label image values; a positive label k is world.obstacles[k - 1].
@@ -101,7 +101,7 @@ class StereoFrame:
     depth_m: NDArray[np.float32]  # left depth along the optical axis, inf for sky
     labels: NDArray[np.int16]
     right_disparity_px: NDArray[np.float32]  # the right image's own truth (for left-right checks)
-    pose: Pose2D
+    pose: Pose
     rig: StereoRig
     obstacles: tuple[WorldObstacle, ...]
     left_bgr: NDArray[np.uint8] | None = field(default=None, repr=False)
@@ -154,7 +154,7 @@ class _Ground:
 class _FrameScene:
     """What one pose sees, in the vehicle frame: shared by both cameras of the pair."""
 
-    pose: Pose2D
+    pose: Pose
     obstacles: list[tuple[int, WorldObstacle]]  # (index in world.obstacles, vehicle-frame copy)
     hazards: list[TerrainHazard]
     decal: RoadDecal | None
@@ -246,7 +246,7 @@ class StereoRenderer:
 
     # -- per frame ------------------------------------------------------------------------------
 
-    def _views(self, pose: Pose2D, truth: bool) -> tuple[_View, _View]:
+    def _views(self, pose: Pose, truth: bool) -> tuple[_View, _View]:
         scene = self._frame_scene(pose)
         return self._view(scene, right=False, truth=truth), self._view(scene, right=True, truth=truth)
 
@@ -263,7 +263,7 @@ class StereoRenderer:
             _exposed(right.radiance, cfg.right_gain, cfg.right_offset_dn, right_noise, std),
         )
 
-    def _frame_scene(self, pose: Pose2D) -> _FrameScene:
+    def _frame_scene(self, pose: Pose) -> _FrameScene:
         cfg = self.config
         east, north, yaw = pose
         obstacles = []
@@ -582,14 +582,14 @@ def _exposed(
     return cv2.addWeighted(radiance, gain, noise, std, offset, dtype=cv2.CV_8U)
 
 
-def _pose(pose: Sequence[float]) -> Pose2D:
+def _pose(pose: Sequence[float]) -> Pose:
     try:
         east, north, yaw = (float(value) for value in pose)
     except (TypeError, ValueError):
         raise ValueError(f"pose must be (east_m, north_m, yaw_rad), got {pose!r}") from None
     if not all(math.isfinite(value) for value in (east, north, yaw)):
         raise ValueError(f"pose must be finite, got {pose!r}")
-    return Pose2D(east, north, yaw)
+    return Pose(east, north, yaw)
 
 
 def _to_uint8(image: NDArray[np.float32]) -> NDArray[np.uint8]:

@@ -46,12 +46,12 @@ from typing import TypeVar
 
 import numpy as np
 
+from brain.pose import Pose
 from modules.esvs.camera import solids
 from modules.esvs.camera.rays import rig_rays
 from modules.esvs.camera.render import StereoFrame, StereoRenderer
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
 from modules.esvs.vision.pipeline import VisionParams, process
-from modules.lidar.raycast import Pose2D
 from modules.sim.world import HazardKind, LaneBorderLine, Shape, TerrainHazard, Texture, World, WorldObstacle
 from protocol.messages import Obstacle
 
@@ -103,7 +103,7 @@ class Scene:
     the VEHICLE frame of that pose (same order, so label k is obstacles[k - 1])."""
 
     world: World
-    pose: Pose2D
+    pose: Pose
     obstacles: tuple[WorldObstacle, ...]
     hazards: tuple[TerrainHazard, ...]
     terrain: str  # "flat", "ditch" or "berm"
@@ -207,20 +207,20 @@ def _crossing(rng: np.random.Generator, rig: StereoRig, kind: HazardKind) -> Ter
 _Placed = TypeVar("_Placed", WorldObstacle, TerrainHazard)
 
 
-def _to_world(pose: Pose2D, x: float, y: float) -> tuple[float, float]:
+def _to_world(pose: Pose, x: float, y: float) -> tuple[float, float]:
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     return pose.east_m + c * x - s * y, pose.north_m + s * x + c * y
 
 
-def _placed_in_world(pose: Pose2D, item: _Placed) -> _Placed:
+def _placed_in_world(pose: Pose, item: _Placed) -> _Placed:
     """A VEHICLE-frame obstacle or hazard moved into the world a vehicle at ``pose`` sees."""
     east, north = _to_world(pose, item.east_m, item.north_m)
     return replace(item, east_m=east, north_m=north, yaw_rad=item.yaw_rad + pose.yaw_rad)
 
 
-def _random_pose(rng: np.random.Generator) -> Pose2D:
+def _random_pose(rng: np.random.Generator) -> Pose:
     east, north = (float(v) for v in rng.uniform(-5000.0, 5000.0, 2))
-    return Pose2D(east, north, float(rng.uniform(-math.pi, math.pi)))
+    return Pose(east, north, float(rng.uniform(-math.pi, math.pi)))
 
 
 def build_scene(

@@ -9,8 +9,8 @@ import pytest
 
 from brain.fusion import HazardFusion
 from brain.fusion.profile import classify_profile
+from brain.pose import Pose
 from modules.lidar.profile import VERTICAL_MOUNTS, ground_height, profile_scan
-from modules.lidar.raycast import Pose2D
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import Sensor, SurfaceProfile
 from tests.brain.fusion.helpers import enu_of, parked
@@ -57,7 +57,7 @@ def test_range_noise_between_the_nearest_returns_is_not_a_wall() -> None:
     mount, sensor = VERTICAL_MOUNTS["lidar_v_left"], int(Sensor.LIDAR_V_LEFT)
     walls = {0.0: 0, 0.05: 0}
     for _ in range(500):
-        profile = profile_scan([], Pose2D(0.0, 0.0, 0.0), mount, sensor, rng)
+        profile = profile_scan([], Pose(0.0, 0.0, 0.0), mount, sensor, rng)
         for rise in walls:
             stretches = classify_profile(profile.ranges_m, profile.heights_m, STEP, SLOPE, GAP, END, min_rise_m=rise)
             walls[rise] += len(stretches.hazard)
@@ -78,7 +78,7 @@ def test_a_simulated_ditch_lands_where_it_is_and_level_ground_is_cleared() -> No
     ditch = TerrainHazard("wash", HazardKind.DITCH, *centre, yaw, length_m=2.5, width_m=14.0, magnitude_m=0.7)
     fusion = parked(east, north, yaw)
     rng = np.random.default_rng(3)
-    pose = Pose2D(east, north, yaw)
+    pose = Pose(east, north, yaw)
     for _ in range(3):
         for name, sensor in (("lidar_v_left", Sensor.LIDAR_V_LEFT), ("lidar_v_right", Sensor.LIDAR_V_RIGHT)):
             assert fusion.add_profile(0, profile_scan([ditch], pose, VERTICAL_MOUNTS[name], int(sensor), rng))

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from brain.fusion import CostMap, HazardFusion
+from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
 from modules.lidar.profile import VERTICAL_MOUNTS, ground_height, profile_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Pose2D, Scene, cast
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, Scene, cast
 from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from modules.sim.world import Shape, WorldObstacle
 from protocol.messages import Frame, ObstacleList, Sensor
@@ -31,16 +32,16 @@ def scenario() -> Scenario:
     return load_scenario(DEFAULT_SCENARIO)
 
 
-def route_pose(scenario: Scenario, s_m: float) -> Pose2D:
+def route_pose(scenario: Scenario, s_m: float) -> Pose:
     route = scenario.route
     east = float(np.interp(s_m, route.s_m, route.east_m))
     north = float(np.interp(s_m, route.s_m, route.north_m))
     ahead_e = float(np.interp(s_m + 1.0, route.s_m, route.east_m))
     ahead_n = float(np.interp(s_m + 1.0, route.s_m, route.north_m))
-    return Pose2D(east, north, math.atan2(ahead_n - north, ahead_e - east))
+    return Pose(east, north, math.atan2(ahead_n - north, ahead_e - east))
 
 
-def drive(scenario: Scenario, start_m: float, end_m: float) -> Iterator[tuple[int, Pose2D, bool]]:
+def drive(scenario: Scenario, start_m: float, end_m: float) -> Iterator[tuple[int, Pose, bool]]:
     """(t_ns, pose, is_navigation_tick) along the route at SPEED_MPS, navigation states every
     20 ms and lidar sweeps every 40 ms, 10 ms after a navigation state (so they interpolate)."""
     duration_ns = round((end_m - start_m) / SPEED_MPS * 1e9)
@@ -72,7 +73,7 @@ def test_rocks_become_hazards_where_they_stand_and_the_road_between_stays_clear(
     scene = Scene.from_obstacles(scenario.world.obstacles)
     rng = np.random.default_rng(2005)
     fusion = HazardFusion()
-    scanned_from: list[Pose2D] = []
+    scanned_from: list[Pose] = []
     in_flight: list[tuple[int, ObstacleList]] = []  # sweeps arrive after the next navigation state
     for t, pose, nav in drive(scenario, start_m, end_m):
         if nav:

@@ -9,7 +9,8 @@ import pytest
 
 from brain.fusion import HazardFusion
 from brain.fusion.sensors import SensorClass
-from modules.lidar.raycast import Pose2D, Scene
+from brain.pose import Pose
+from modules.lidar.raycast import Scene
 from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import GroundStretch, GroundSweep, Sensor
@@ -25,7 +26,7 @@ def wash_sweeps(fusion: HazardFusion, count: int = 3) -> None:
     wash = TerrainHazard("wash", HazardKind.DITCH, *centre, YAW, length_m=2.5, width_m=14.0, magnitude_m=0.7)
     rng = np.random.default_rng(7)
     for _ in range(count):
-        returns = sweep_scan([wash], Scene.from_obstacles(()), Pose2D(EAST, NORTH, YAW), SWEEP_MOUNT, rng)
+        returns = sweep_scan([wash], Scene.from_obstacles(()), Pose(EAST, NORTH, YAW), SWEEP_MOUNT, rng)
         assert fusion.add_ground_sweep(0, describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP)))
 
 
@@ -121,7 +122,7 @@ def test_sweeps_driving_up_to_the_wash_map_its_near_edge(metres_per_sweep: float
     for step, x in enumerate(np.arange(0.0, near_m - LINE_M + 4.0, metres_per_sweep), start=1):
         east, north = enu_of(EAST, NORTH, YAW, float(x), 0.0)
         fusion.add_pose(step * 27 * MS, state(east, north, YAW))
-        returns = sweep_scan([wash], Scene.from_obstacles(()), Pose2D(east, north, YAW), SWEEP_MOUNT, rng)
+        returns = sweep_scan([wash], Scene.from_obstacles(()), Pose(east, north, YAW), SWEEP_MOUNT, rng)
         assert fusion.add_ground_sweep(step * 27 * MS, describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP)))
     cost_map = fusion.cost_map()
     for lateral in np.arange(-6.5, 6.6, 0.5):

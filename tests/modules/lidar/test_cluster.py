@@ -14,8 +14,9 @@ import math
 import numpy as np
 import pytest
 
+from brain.pose import Pose
 from modules.lidar.cluster import ClusterParams, describe_scan, split
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, Pose2D, ScanSpec, Scene, cast, sensor_pose
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, ScanSpec, Scene, cast, sensor_pose
 from modules.sim.world import Shape, WorldObstacle
 from protocol.messages import Obstacle
 
@@ -23,10 +24,10 @@ SPEC = ScanSpec()
 CASES = 300
 
 
-def place(rng: np.random.Generator, radius: float, max_distance_m: float = 40.0) -> tuple[Pose2D, Mount, np.ndarray]:
+def place(rng: np.random.Generator, radius: float, max_distance_m: float = 40.0) -> tuple[Pose, Mount, np.ndarray]:
     """A random vehicle pose, one of the horizontal lidars, and an ENU point 3..max m in front of
     that lidar such that a footprint of ``radius`` around it lies inside the field of view."""
-    pose = Pose2D(float(rng.uniform(-200, 200)), float(rng.uniform(-200, 200)), float(rng.uniform(-math.pi, math.pi)))
+    pose = Pose(float(rng.uniform(-200, 200)), float(rng.uniform(-200, 200)), float(rng.uniform(-math.pi, math.pi)))
     mount = HORIZONTAL_MOUNTS[str(rng.choice(sorted(HORIZONTAL_MOUNTS)))]
     origin, yaw = sensor_pose(pose, mount)
     distance = float(rng.uniform(max(3.0, radius + 1.0), max_distance_m))
@@ -35,20 +36,20 @@ def place(rng: np.random.Generator, radius: float, max_distance_m: float = 40.0)
     return pose, mount, origin + distance * np.array((math.cos(bearing), math.sin(bearing)))
 
 
-def in_vehicle_frame(pose: Pose2D, east: float, north: float) -> np.ndarray:
+def in_vehicle_frame(pose: Pose, east: float, north: float) -> np.ndarray:
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
     dx, dy = east - pose.east_m, north - pose.north_m
     return np.array((c * dx + s * dy, -s * dx + c * dy))
 
 
 def observe(
-    obstacle: WorldObstacle, pose: Pose2D, mount: Mount, rng: np.random.Generator
+    obstacle: WorldObstacle, pose: Pose, mount: Mount, rng: np.random.Generator
 ) -> tuple[int, tuple[Obstacle, ...]]:
     scan = cast(Scene.from_obstacles([obstacle]), pose, mount, SPEC, rng)
     return int(np.isfinite(scan.ranges_m).sum()), describe_scan(scan)
 
 
-def position_error(pose: Pose2D, obstacle: WorldObstacle, found: Obstacle) -> float:
+def position_error(pose: Pose, obstacle: WorldObstacle, found: Obstacle) -> float:
     truth = in_vehicle_frame(pose, obstacle.east_m, obstacle.north_m)
     return math.hypot(found.x_m - truth[0], found.y_m - truth[1])
 
@@ -120,7 +121,7 @@ def test_two_obstacles_with_a_1_5_m_gap_are_two_clusters(distance: float) -> Non
     scene = Scene.from_obstacles(
         [WorldObstacle(str(i), Shape.CYLINDER, x, y, 2.0, radius_m=radius) for i, (x, y) in enumerate(centres)]
     )
-    found = describe_scan(cast(scene, Pose2D(0.0, 0.0, 0.0), mount, SPEC, np.random.default_rng(7)))
+    found = describe_scan(cast(scene, Pose(0.0, 0.0, 0.0), mount, SPEC, np.random.default_rng(7)))
     assert len(found) == 2
     for x, y in centres:
         assert min(math.hypot(o.x_m - x, o.y_m - y) for o in found) <= 0.2
@@ -133,13 +134,13 @@ def test_a_range_jump_splits_an_obstacle_from_the_wall_behind_it() -> None:
             WorldObstacle("wall", Shape.BOX, 12.0, 0.0, 2.0, length_m=0.5, width_m=8.0),
         ]
     )
-    clusters = split(cast(scene, Pose2D(0.0, 0.0, 0.0), Mount(0.0, 0.0, 0.7), SPEC), ClusterParams())
+    clusters = split(cast(scene, Pose(0.0, 0.0, 0.0), Mount(0.0, 0.0, 0.7), SPEC), ClusterParams())
     assert [round(float(c.ranges_m.min())) for c in clusters] == [12, 10, 12]
 
 
 def test_descriptors_follow_the_vehicle_frame_conventions() -> None:
     mount = HORIZONTAL_MOUNTS["lidar_h_left"]
-    pose = Pose2D(100.0, -50.0, 1.0)
+    pose = Pose(100.0, -50.0, 1.0)
     c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
 
     def enu(x: float, y: float) -> tuple[float, float]:
@@ -167,5 +168,5 @@ def test_descriptors_follow_the_vehicle_frame_conventions() -> None:
 
 
 def test_an_empty_scan_describes_nothing() -> None:
-    scan = cast(Scene.from_obstacles([]), Pose2D(0.0, 0.0, 0.0), Mount(0.0, 0.0, 0.7), SPEC)
+    scan = cast(Scene.from_obstacles([]), Pose(0.0, 0.0, 0.0), Mount(0.0, 0.0, 0.7), SPEC)
     assert describe_scan(scan) == ()

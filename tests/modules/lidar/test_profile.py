@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from brain.pose import Pose
 from modules.lidar.profile import (
     VERTICAL_MOUNTS,
     Hazard,
@@ -16,12 +17,11 @@ from modules.lidar.profile import (
     ground_height,
     profile_scan,
 )
-from modules.lidar.raycast import Pose2D
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import Sensor, SurfaceProfile
 
 MOUNT = VERTICAL_MOUNTS["lidar_v_left"]
-POSE = Pose2D(30.0, -20.0, 0.7)
+POSE = Pose(30.0, -20.0, 0.7)
 
 
 def crossing(

@@ -8,11 +8,12 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, Pose2D, Scan, ScanSpec, Scene, cast, sensor_pose
+from brain.pose import Pose
+from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, Scan, ScanSpec, Scene, cast, sensor_pose
 from modules.sim.world import Shape, WorldObstacle
 
 AT_ORIGIN = Mount(0.0, 0.0, 0.7)
-HERE = Pose2D(0.0, 0.0, 0.0)
+HERE = Pose(0.0, 0.0, 0.0)
 
 
 def cylinder(east: float, north: float, radius: float, height: float = 2.0) -> WorldObstacle:
@@ -23,7 +24,7 @@ def box(east: float, north: float, length: float, width: float, yaw: float, heig
     return WorldObstacle("b", Shape.BOX, east, north, height, length_m=length, width_m=width, yaw_rad=yaw)
 
 
-def ray_angles(scan: Scan, pose: Pose2D) -> np.ndarray:
+def ray_angles(scan: Scan, pose: Pose) -> np.ndarray:
     return sensor_pose(pose, scan.mount)[1] + scan.bearings_rad
 
 
@@ -41,7 +42,7 @@ def segment_range(origin: np.ndarray, angle: float, a: np.ndarray, b: np.ndarray
 
 
 poses = st.builds(
-    Pose2D,
+    Pose,
     st.floats(-500, 500),
     st.floats(-500, 500),
     st.floats(-math.pi, math.pi),
@@ -57,7 +58,7 @@ poses = st.builds(
     radius=st.floats(0.1, 2.0),
 )
 def test_cylinder_ranges_match_the_circle(
-    pose: Pose2D, sensor: str, distance: float, bearing: float, radius: float
+    pose: Pose, sensor: str, distance: float, bearing: float, radius: float
 ) -> None:
     mount = HORIZONTAL_MOUNTS[sensor]
     origin, yaw = sensor_pose(pose, mount)
@@ -89,7 +90,7 @@ def test_cylinder_ranges_match_the_circle(
     yaw=st.floats(-math.pi, math.pi),
 )
 def test_box_ranges_match_the_rectangle(
-    pose: Pose2D, sensor: str, distance: float, bearing: float, length: float, width: float, yaw: float
+    pose: Pose, sensor: str, distance: float, bearing: float, length: float, width: float, yaw: float
 ) -> None:
     assume(math.hypot(length, width) / 2 < distance)  # the scanner stands outside the box
     mount = HORIZONTAL_MOUNTS[sensor]

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from brain.pose import Pose
 from modules.lidar.profile import VERTICAL_MOUNTS, first_hits, ground_height
-from modules.lidar.raycast import Pose2D, Scene, descending_ray_ranges
+from modules.lidar.raycast import Scene, descending_ray_ranges
 from modules.lidar.sweep import SWEEP_MOUNT, SweepMount, describe_sweep, sweep_scan
 from modules.sim.world import HazardKind, Shape, TerrainHazard, WorldObstacle
 from protocol.messages import GroundStretch, GroundSweep, Sensor
@@ -20,13 +21,13 @@ WASH = dict(length_m=2.5, width_m=14.0, magnitude_m=0.7)
 TRAVEL_PER_SWEEP_M = 13.4 / 37.5  # 30 mph at the deployment's 37.5 sweeps a second
 
 
-AT_ORIGIN = Pose2D(0.0, 0.0, 0.0)
+AT_ORIGIN = Pose(0.0, 0.0, 0.0)
 
 
 def sweep(
     hazards: tuple[TerrainHazard, ...] | list[TerrainHazard] = (),
     scene: Scene = EMPTY,
-    pose: Pose2D = AT_ORIGIN,
+    pose: Pose = AT_ORIGIN,
     mount: SweepMount = SWEEP_MOUNT,
     rng: np.random.Generator | None = None,
 ) -> GroundSweep:
@@ -68,7 +69,7 @@ def test_the_wash_is_found_end_to_end_in_every_sweep_while_the_line_crosses_it()
 
 def test_a_wash_seen_at_an_angle_keeps_its_ends() -> None:
     yaw = math.radians(15.0)
-    pose = Pose2D(0.0, 0.0, yaw)
+    pose = Pose(0.0, 0.0, yaw)
     for ahead in np.arange(LINE_M - 2.0, LINE_M + 2.0, 0.25):  # wash centre straight down the road
         wash = TerrainHazard("wash", HazardKind.DITCH, ahead, 0.0, 0.0, **WASH)
         low = low_stretches(sweep([wash], pose=pose).stretches)
@@ -103,7 +104,7 @@ def reach_past(stretches: list[GroundStretch], rock: WorldObstacle) -> float:
 
 def test_a_face_seen_at_a_slant_is_cut_into_pieces_that_hug_it() -> None:
     rock = WorldObstacle("rock", Shape.BOX, LINE_M - 2.0, 0.0, 0.9, length_m=1.4, width_m=1.4, yaw_rad=0.6)
-    returns = sweep_scan((), Scene.from_obstacles((rock,)), Pose2D(0.0, 0.0, 0.0))
+    returns = sweep_scan((), Scene.from_obstacles((rock,)), Pose(0.0, 0.0, 0.0))
     pieces = [s for s in describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP)).stretches if s.height_m > 0]
     whole = describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP), max_depth_m=math.inf).stretches
     assert all(s.x_far_m - s.x_near_m <= 0.25 for s in pieces)
