@@ -6,7 +6,6 @@ lidar), with the scenario's sensor faults applied.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,13 +16,13 @@ from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profi
 from modules.lidar.raycast import HORIZONTAL_MOUNTS, ScanSpec, Scene, add_noise, cast
 from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
-from modules.sim.world import FaultKind, World
+from modules.sim.sensing import SensedTruth
+from modules.sim.world import World
 from protocol import channels
 from protocol.messages import Frame, GroundSweep, ObstacleList, Sensor, SimTruth, SurfaceProfile
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
 from rascal.runtime.ports import Port
-from rascal.runtime.rtdb import Validity
 
 # Source ids the runner gives each lidar process (``--source-id``), and what each one is.
 SOURCE_IDS: dict[str, int] = {
@@ -100,10 +99,8 @@ class Lidar(Module):
         super().__init__(config, runtime)
         self.world = world
         self.seed = seed
-        self.last_truth_ns: int | None = None
-        self.last_output: Output | None = None  # what STUCK repeats
         self.published = 0
-        self.active_faults: tuple[FaultKind, ...] = ()
+        self.sensed: SensedTruth[Output] | None = None  # from on_start
 
     def on_start(self) -> None:
         config = self.config
@@ -120,37 +117,20 @@ class Lidar(Module):
         vertical = VERTICAL_MOUNTS.get(config.sensor)
         self.vertical_mount = replace(vertical, range_noise_std_m=config.noise_std_m) if vertical else None
         self.entropy = [*_words(self.seed % 2**64), *_words(config.seed_offset % 2**64), SOURCE_IDS[config.sensor]]
-        self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S)
+        truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S)
+        self.sensed = SensedTruth(truth, self.world, config.sensor)
         self.every(1.0 / config.rate_hz, self.sweep, priority=1)
 
     def sweep(self) -> None:
-        """Scan from the newest true pose and publish, as the active faults allow. One output per
-        new pose at most: without a new pose there is no new measurement. Faults are looked up at
-        the pose's scenario time and course progress, so all sensor processes apply them together
-        however late each one started."""
-        reading = self.truth.read(self.now_ns())
-        if reading.validity is not Validity.FRESH or reading.envelope is None:
-            return
-        truth: SimTruth = reading.value
-        t_meas_ns = reading.envelope.t_meas_ns
-        if t_meas_ns == self.last_truth_ns:
-            return
-        self.last_truth_ns = t_meas_ns
-        assert self.world is not None
-        faults = self.world.faults_for(self.config.sensor, truth.scenario_time_s, truth.progress_m)
-        kinds = {fault.kind for fault in faults}
-        self.active_faults = tuple(sorted(kinds, key=lambda kind: kind.value))
-        if FaultKind.SILENCE in kinds:
-            return
-        if FaultKind.STUCK in kinds:
-            # A stuck driver keeps delivering its last buffer as if it were new: same content,
-            # stamped now, so only the content gives it away (nothing until there was a buffer).
-            if self.last_output is not None:
-                self._publish(self.last_output, t_meas_ns)
-            return
-        noise_scale = math.prod(fault.magnitude for fault in faults if fault.kind is FaultKind.NOISE)
-        self.last_output = self.measure(truth, t_meas_ns, noise_scale)
-        self._publish(self.last_output, t_meas_ns)
+        """Scan from the newest true pose and publish, as the active faults allow
+        (modules/sim/sensing.py: one output per new pose at most; a stuck scanner repeats its
+        last, so only the content gives it away)."""
+        assert self.sensed is not None
+        sensed = self.sensed.step(self.now_ns(), self.measure)
+        if sensed is not None:
+            output, t_meas_ns = sensed
+            self.bus.publish(CHANNELS[self.config.sensor], output, t_meas_ns=t_meas_ns)
+            self.published += 1
 
     def measure(self, truth: SimTruth, t_meas_ns: int, noise_scale: float = 1.0) -> Output:
         """What this lidar sees from the vehicle pose in ``truth``. The noise is drawn from a
@@ -179,16 +159,13 @@ class Lidar(Module):
         that list itself: the same generator, without its slow conversion of Python ints."""
         return np.array([*self.entropy, *_words(t_meas_ns % 2**64)], dtype=np.uint32)
 
-    def _publish(self, message: Output, t_meas_ns: int) -> None:
-        self.bus.publish(CHANNELS[self.config.sensor], message, t_meas_ns=t_meas_ns)
-        self.published += 1
-
     def instance(self) -> str:
         return self.config.sensor
 
     def status_detail(self) -> str:
-        faults = ",".join(kind.value for kind in self.active_faults)
-        summary = _summary(self.last_output) if self.last_output is not None else ""
+        faults = self.sensed.fault_names if self.sensed else ""
+        last = self.sensed.gate.last if self.sensed else None
+        summary = _summary(last) if last is not None else ""
         return f"{self.config.sensor}: sent {self.published}; {summary}" + (f"; fault {faults}" if faults else "")
 
 

@@ -8,7 +8,7 @@ which (with the sample's course progress) the fault schedule is evaluated. It re
 message, or None when the sensor is silent. Models draw the same random numbers whatever the
 faults, so a fault never shifts the noise that follows it.
 
-Faults (``modules.sim.world.SensorFault``), looked up with ``World.faults_for(name, t_s, progress_m)``:
+Faults (``modules.sim.world.SensorFault``), combined as every simulated sensor combines them (modules/sim/sensing.py):
 
 - SILENCE and OUTAGE: no output. For the GPS an outage is no fix at all rather than a fix
   marked INVALID, so no consumer can mistake a stand-in for a position; a filter detects it
@@ -30,12 +30,13 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Generic, NamedTuple, Protocol, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 import numpy as np
 import pymap3d
 
 from brain.corridor import WGS84, GeodeticOrigin
+from modules.sim.sensing import NO_FAULT, FaultEffect, StuckGate, fault_effect
 from modules.sim.world import FaultKind, SensorFault, World
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, WheelSpeed
 from rascal.runtime.angles import wrap_angle
@@ -104,31 +105,6 @@ class GaussMarkov:
         return self.values
 
 
-class FaultEffect(NamedTuple):
-    """What the active faults do to one sensor's next output."""
-
-    silent: bool
-    stuck: bool
-    noise_scale: float
-    jumps: tuple[SensorFault, ...]
-
-
-def fault_effect(schedule: World, sensor: str, t_s: float, progress_m: float) -> FaultEffect:
-    """Combine the faults of ``sensor`` active at ``t_s`` and ``progress_m``: silence wins over
-    stuck, noise factors multiply, jumps add."""
-    active = schedule.faults_for(sensor, t_s, progress_m)
-    kinds = {fault.kind for fault in active}
-    return FaultEffect(
-        silent=bool(kinds & {FaultKind.SILENCE, FaultKind.OUTAGE}),
-        stuck=FaultKind.STUCK in kinds,
-        noise_scale=math.prod(fault.magnitude for fault in active if fault.kind is FaultKind.NOISE),
-        jumps=tuple(fault for fault in active if fault.kind is FaultKind.JUMP),
-    )
-
-
-NO_FAULT = fault_effect(World(), "", 0.0, 0.0)
-
-
 class _Sensor(Generic[M]):
     """Fault schedule lookup and the output gate (silence, stuck) shared by every model."""
 
@@ -136,7 +112,7 @@ class _Sensor(Generic[M]):
         self.name = name
         # Only this sensor's faults: most sensors have none, and then every sample is clear.
         self._schedule = World(faults=tuple(fault for fault in faults if name in fault.sensors))
-        self._last: M | None = None
+        self._gate: StuckGate[M] = StuckGate()
         self._prev_t_ns: int | None = None
 
     def _effect(self, truth: TruthState, t_s: float) -> FaultEffect:
@@ -153,12 +129,8 @@ class _Sensor(Generic[M]):
         return None if prev is None else (t_ns - prev) / 1e9
 
     def _emit(self, effect: FaultEffect, measurement: M) -> M | None:
-        if effect.silent:
-            return None
-        if effect.stuck:
-            return self._last
-        self._last = measurement
-        return measurement
+        """The measurement, made whatever the faults (its noise processes run on), as they allow."""
+        return self._gate.emit(effect, lambda: measurement)
 
 
 @dataclass(frozen=True)

@@ -26,13 +26,13 @@ from modules.esvs.camera import StereoRenderer
 from modules.esvs.frames import DEFAULT_SLOTS, RingWriter, Trigger
 from modules.esvs.geometry import RASCAL_RIG
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
-from modules.sim.world import FaultKind, World
+from modules.sim.sensing import SensedTruth
+from modules.sim.world import World
 from protocol import channels
 from protocol.messages import SimTruth
 from rascal.runtime.config import setting
 from rascal.runtime.module import Module, Runtime
 from rascal.runtime.ports import Port
-from rascal.runtime.rtdb import Validity
 
 TRUTH_MAX_AGE_S = 0.5  # the simulator publishes at 100 Hz: older means it stopped
 MAX_FPS = 60.0  # the Basler cameras' top rate
@@ -92,15 +92,13 @@ class StereoCamera(Module):
         self.seed = seed
         self.monotonic_ns = monotonic_ns
         self.writer: RingWriter | None = None
-        self.last_truth_ns: int | None = None
-        self.last_pair: tuple[np.ndarray, np.ndarray] | None = None  # what a STUCK fault repeats
+        self.sensed: SensedTruth[tuple[np.ndarray, np.ndarray]] | None = None  # from on_start
         self.written = 0
         self.frame_times_ns: deque[int] = deque(maxlen=RENDER_HISTORY)  # render and write, wall time
         self.trigger: Trigger | None = None  # the live trigger the exposures follow, None while running free
         self.start_ns = 0  # a start on the exposures' triggered grid (CLOCK_MONOTONIC)
         self.grab_ns = 0  # the grab the latest triggered frame was for
         self.late = 0  # triggered frames still being made at their grab
-        self.fault = ""
 
     def on_start(self) -> None:
         config = self.config
@@ -115,7 +113,8 @@ class StereoCamera(Module):
         # time sets how early triggered frames start.
         self.renderer.images((0.0, 0.0, 0.0), np.random.default_rng(0))
         self.writer = RingWriter(config.ring_name, RASCAL_RIG.height_px, RASCAL_RIG.width_px, config.ring_slots)
-        self.truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S, SimTruth)
+        truth = self.input(channels.SIM_TRUTH, TRUTH_MAX_AGE_S, SimTruth)
+        self.sensed = SensedTruth(truth, self.world, FAULT_SENSOR)
         self.every(1.0 / config.fps, self.tick, priority=1)
         self.every(PHASE_S, self.phase, priority=2)
 
@@ -161,36 +160,23 @@ class StereoCamera(Module):
         self.trigger, self.start_ns = trigger, grab_ns - lead_ns
 
     def expose(self) -> None:
-        """One frame from the newest true pose, at most one per pose, as the faults allow."""
-        reading = self.truth.read(self.now_ns())
-        if reading.validity is not Validity.FRESH or reading.envelope is None:
-            return
-        truth: SimTruth = reading.value
-        t_meas_ns = reading.envelope.t_meas_ns
-        if t_meas_ns == self.last_truth_ns:
-            return
-        self.last_truth_ns = t_meas_ns
-        assert self.world is not None and self.writer is not None
-        faults = self.world.faults_for(FAULT_SENSOR, truth.scenario_time_s, truth.progress_m)
-        kinds = {fault.kind for fault in faults}
-        self.fault = ",".join(sorted(kind.value for kind in kinds))
-        if FaultKind.SILENCE in kinds:
-            return
-        if FaultKind.STUCK in kinds:
-            # A stuck grabber hands out its last buffer again under a new time stamp.
-            if self.last_pair is not None:
-                self.writer.write(*self.last_pair, t_meas_ns)
-                self.written += 1
-            return
+        """One frame from the newest true pose, at most one per pose, as the faults allow (a stuck
+        grabber hands out its last buffer again under a new time stamp: modules/sim/sensing.py)."""
+        assert self.sensed is not None and self.writer is not None
+        sensed = self.sensed.step(self.now_ns(), self.render)
+        if sensed is not None:
+            (left, right), t_meas_ns = sensed
+            self.writer.write(left, right, t_meas_ns)
+            self.written += 1
+
+    def render(self, truth: SimTruth, t_meas_ns: int, noise_scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """The pair the cameras expose at the true pose, its noise seeded by the pose's time."""
         entropy = [self.seed % 2**64, self.config.seed_offset % 2**64, self.default_source_id, t_meas_ns % 2**64]
         rng = np.random.default_rng(np.random.SeedSequence(entropy))
         start = time.perf_counter_ns()
-        noise = float(np.prod([fault.magnitude for fault in faults if fault.kind is FaultKind.NOISE]))
-        left, right = self.renderer.images((truth.east_m, truth.north_m, truth.yaw_rad), rng, noise_gain=noise)
-        self.writer.write(left, right, t_meas_ns)
+        pair = self.renderer.images((truth.east_m, truth.north_m, truth.yaw_rad), rng, noise_gain=noise_scale)
         self.frame_times_ns.append(time.perf_counter_ns() - start)
-        self.last_pair = (left, right)
-        self.written += 1
+        return pair
 
     def status_detail(self) -> str:
         seq = self.writer.seq if self.writer is not None else 0
@@ -200,4 +186,5 @@ class StereoCamera(Module):
             text += f"; triggered every {self.trigger.period_ns / 1e6:.0f} ms, {self.late} late"
         else:
             text += f"; free-running {self.config.fps:g} fps"
-        return text + (f"; fault {self.fault}" if self.fault else "")
+        fault = self.sensed.fault_names if self.sensed else ""
+        return text + (f"; fault {fault}" if fault else "")
