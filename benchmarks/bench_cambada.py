@@ -38,11 +38,11 @@ from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
 from modules.esvs import scheduling
-from modules.esvs.camera import render_pair
 from modules.esvs.frames import RingWriter
 from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.module import Esvs
 from modules.esvs.settings import EsvsConfig
+from modules.sim.camera import render_pair
 from modules.sim.scenario import load_scenario
 from protocol.auth import Keyring
 from rascal.runtime.bus import Bus

@@ -18,7 +18,7 @@ import numpy as np
 from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
-from modules.esvs.camera import StereoFrame, StereoRenderer, render_pair
+from modules.sim.camera import StereoFrame, StereoRenderer, render_pair
 from modules.sim.scenario import load_scenario
 
 TARGET_PAIRS_PER_S = 20.0

@@ -1,7 +1,7 @@
 """ESVS vision pipeline at 656x490: the matcher choice (accuracy and cost), obstacle and lane-border
 accuracy, per-stage cost, and frames per second on one thread and on two (two frames in flight).
 
-Frames are rendered by the simulated cameras (modules.esvs.camera): along the default scenario's
+Frames are rendered by the simulated cameras (modules.sim.camera): along the default scenario's
 route (desert ground, road edges, the scenario's obstacles) for cost, matching and lane borders;
 with random boxes and cylinders 10-35 m ahead of the cameras for obstacles. OpenCV's own
 threading is off (cv2.setNumThreads(1)), so "one thread" is one core and "two threads" at most two.
@@ -22,11 +22,11 @@ from rich.console import Console
 
 from benchmarks.report import Table, machine_line, print_table
 from brain.pose import Pose
-from modules.esvs.camera import StereoFrame, render_pair
 from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.vision import STAGES, VisionParams, process
 from modules.esvs.vision.band import Band, BandParams, band_disparity, band_rows
 from modules.esvs.vision.disparity import REALTIME, MatcherParams
+from modules.sim.camera import StereoFrame, render_pair
 from modules.sim.scenario import load_scenario
 from modules.sim.world import LaneBorderLine, Shape, Texture, World, WorldObstacle
 

@@ -20,7 +20,6 @@ ALLOWED = {
     Path("modules/lidar"),
     Path("modules/referee"),  # judges the drive against the truth
     Path("modules/stereo_camera"),  # renders what the cameras see
-    Path("modules/esvs/camera"),  # the camera renderer library
     Path("rascal/report_data.py"),  # the run report draws the true track beside the estimate, after the drive
 }
 CHECKED = ("brain", "esvs_client", "modules", "rascal")

@@ -13,7 +13,7 @@ Ground truth formats: KITTI 16-bit PNG (value / 256, 0 invalid), Middlebury 8-bi
 
 ``rascal esvs eval --simulated [--scenes N] [--clear-frames M] [--seed S]`` instead scores the whole
 obstacle pipeline on rendered scenes with known obstacles: recall, precision and range error by
-range band, and false descriptors on clear terrain (``modules.esvs.camera.scenes_eval``).
+range band, and false descriptors on clear terrain (``modules.esvs.scenes_eval``).
 """
 
 from __future__ import annotations
@@ -284,8 +284,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _simulated(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if any(value is not None for value in (args.pair, args.left, args.right, args.gt, args.gt_scale, args.out)):
         parser.error("--simulated renders its own scenes: no --pair, --left, --right, --gt, --gt-scale or --out")
-    from modules.esvs.camera.scenes_eval import evaluate as evaluate_scenes
-    from modules.esvs.camera.scenes_eval import format_report
+    from modules.esvs.scenes_eval import evaluate as evaluate_scenes
+    from modules.esvs.scenes_eval import format_report
 
     try:
         result = evaluate_scenes(

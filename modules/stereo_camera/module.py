@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from modules.esvs.camera import StereoRenderer
 from modules.esvs.frames import DEFAULT_SLOTS, RingWriter, Trigger
 from modules.esvs.geometry import RASCAL_RIG
+from modules.sim.camera import StereoRenderer
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.sensing import SensedTruth
 from modules.sim.world import World

@@ -97,7 +97,7 @@ def test_images_of_the_wrong_kind_are_refused() -> None:
 
 
 def test_on_the_simulated_cameras_a_rock_and_both_road_edges_are_found() -> None:
-    camera = pytest.importorskip("modules.esvs.camera", reason="the simulated cameras are not in this tree")
+    camera = pytest.importorskip("modules.sim.camera", reason="the simulated cameras are not in this tree")
     from modules.sim.world import LaneBorderLine, Shape, World, WorldObstacle
 
     rock = WorldObstacle("rock", Shape.BOX, 24.0, -1.0, 1.2, length_m=1.5, width_m=1.5)

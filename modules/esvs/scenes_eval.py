@@ -47,11 +47,11 @@ from typing import TypeVar
 import numpy as np
 
 from brain.pose import Pose
-from modules.esvs.camera import solids
-from modules.esvs.camera.rays import rig_rays
-from modules.esvs.camera.render import StereoFrame, StereoRenderer
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
 from modules.esvs.vision.pipeline import VisionParams, process
+from modules.sim.camera import solids
+from modules.sim.camera.rays import rig_rays
+from modules.sim.camera.render import StereoFrame, StereoRenderer
 from modules.sim.world import HazardKind, LaneBorderLine, Shape, TerrainHazard, Texture, World, WorldObstacle
 from protocol.messages import Obstacle
 

@@ -22,11 +22,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brain.pose import Pose
-from modules.esvs.camera import solids, terrain
-from modules.esvs.camera.rays import RigRays, rig_rays
-from modules.esvs.camera.road import RoadDecal, draw_decal, lane_arrays
-from modules.esvs.camera.textures import FIXED_ONE, TextureSet, texture_set
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
+from modules.sim.camera import solids, terrain
+from modules.sim.camera.rays import RigRays, rig_rays
+from modules.sim.camera.road import RoadDecal, draw_decal, lane_arrays
+from modules.sim.camera.textures import FIXED_ONE, TextureSet, texture_set
 from modules.sim.world import TerrainHazard, Texture, World, WorldObstacle
 
 # Label image values; a positive label k is world.obstacles[k - 1].

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from modules.esvs.camera.textures import remap_wrapped
+from modules.sim.camera.textures import remap_wrapped
 from modules.sim.world import LaneBorderLine
 
 _SHIFT = 3  # cv2 drawing with 1/8-pixel vertex precision

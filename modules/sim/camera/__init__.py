@@ -6,7 +6,7 @@ depth, and a label image (``LABEL_*`` classes, or obstacle index + 1). Simulatio
 reads the world's truth.
 """
 
-from modules.esvs.camera.render import (
+from modules.sim.camera.render import (
     LABEL_GROUND,
     LABEL_HAZARD,
     LABEL_LANE_BORDER,

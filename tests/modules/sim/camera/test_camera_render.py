@@ -9,7 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from modules.esvs.camera import (
+from modules.esvs.geometry import RASCAL_RIG, StereoRig
+from modules.lidar.profile import ground_height
+from modules.sim.camera import (
     LABEL_GROUND,
     LABEL_HAZARD,
     LABEL_LANE_BORDER,
@@ -19,8 +21,6 @@ from modules.esvs.camera import (
     StereoRenderer,
     render_pair,
 )
-from modules.esvs.geometry import RASCAL_RIG, StereoRig
-from modules.lidar.profile import ground_height
 from modules.sim.world import (
     HazardKind,
     LaneBorderLine,

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from modules.esvs.camera import StereoFrame, StereoRenderer
+from modules.sim.camera import StereoFrame, StereoRenderer
 from modules.sim.scenario import load_scenario
 
 # Along the default Mojave course: the narrow passage between two rocks, and the abandoned car.

@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from modules.esvs.camera import solids
-from modules.esvs.camera.render import StereoRenderer
-from modules.esvs.camera.scenes_eval import (
+from modules.esvs.evaluate import main
+from modules.esvs.geometry import RASCAL_RIG
+from modules.esvs.scenes_eval import (
     RANGE_BANDS_M,
     BandResult,
     Evaluation,
@@ -29,10 +29,10 @@ from modules.esvs.camera.scenes_eval import (
     tolerance_m,
     unoccluded_pixels,
 )
-from modules.esvs.evaluate import main
-from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.vision.clusters import ClusterParams
 from modules.esvs.vision.pipeline import VisionParams, process
+from modules.sim.camera import solids
+from modules.sim.camera.render import StereoRenderer
 from modules.sim.world import Shape, World, WorldObstacle
 from protocol.messages import Obstacle
 
