@@ -20,7 +20,8 @@ from rich.console import Console
 from benchmarks.report import Table, print_table
 from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, ScanSpec, Scene, cast, sensor_pose
+from modules.lidar.scan import HORIZONTAL_MOUNTS, ScanSpec, sensor_pose
+from modules.sim.lidar.raycast import Scene, cast
 from modules.sim.world import Shape, WorldObstacle
 
 SCENE_SIZES = (25, 100)

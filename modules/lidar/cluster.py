@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from modules.lidar.raycast import Scan
+from modules.lidar.scan import Scan
 from protocol.messages import Obstacle
 
 

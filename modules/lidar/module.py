@@ -12,9 +12,12 @@ import numpy as np
 
 from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
-from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards, profile_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, ScanSpec, Scene, add_noise, cast
-from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
+from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, detect_hazards
+from modules.lidar.scan import HORIZONTAL_MOUNTS, ScanSpec
+from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep
+from modules.sim.lidar.profile import profile_scan
+from modules.sim.lidar.raycast import Scene, add_noise, cast
+from modules.sim.lidar.sweep import sweep_scan
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.sensing import SensedTruth
 from modules.sim.world import World

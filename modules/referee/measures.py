@@ -18,9 +18,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from modules.lidar.profile import ground_height
 from modules.sim.collision import clearance_m
 from modules.sim.scenario import Scenario
+from modules.sim.terrain import ground_height
 from modules.sim.vehicle import VehicleParams
 from protocol.messages import Path, SimTruth
 

@@ -20,7 +20,7 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import NDArray
 
-from modules.lidar.profile import CLIFF_SLOPE, WALL_SLOPE, ground_height
+from modules.sim.terrain import CLIFF_SLOPE, WALL_SLOPE, ground_height
 from modules.sim.world import HazardKind, TerrainHazard
 
 Array = NDArray[np.float64]

@@ -10,7 +10,9 @@ import pytest
 from brain.fusion import HazardFusion
 from brain.fusion.profile import classify_profile
 from brain.pose import Pose
-from modules.lidar.profile import VERTICAL_MOUNTS, ground_height, profile_scan
+from modules.lidar.profile import VERTICAL_MOUNTS
+from modules.sim.lidar.profile import profile_scan
+from modules.sim.terrain import ground_height
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import Sensor, SurfaceProfile
 from tests.brain.fusion.helpers import enu_of, parked

@@ -14,9 +14,12 @@ import pytest
 from brain.fusion import CostMap, HazardFusion
 from brain.pose import Pose
 from modules.lidar.cluster import describe_scan
-from modules.lidar.profile import VERTICAL_MOUNTS, ground_height, profile_scan
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Scene, cast
+from modules.lidar.profile import VERTICAL_MOUNTS
+from modules.lidar.scan import HORIZONTAL_MOUNTS
+from modules.sim.lidar.profile import profile_scan
+from modules.sim.lidar.raycast import Scene, cast
 from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+from modules.sim.terrain import ground_height
 from modules.sim.world import Shape, WorldObstacle
 from protocol.messages import Frame, ObstacleList, Sensor
 from tests.brain.fusion.helpers import MS, state

@@ -10,8 +10,9 @@ import pytest
 from brain.fusion import HazardFusion
 from brain.fusion.sensors import SensorClass
 from brain.pose import Pose
-from modules.lidar.raycast import Scene
-from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep, sweep_scan
+from modules.lidar.sweep import SWEEP_MOUNT, describe_sweep
+from modules.sim.lidar.raycast import Scene
+from modules.sim.lidar.sweep import sweep_scan
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import GroundStretch, GroundSweep, Sensor
 from tests.brain.fusion.helpers import MS, box, enu_of, obstacles, parked, probability_at, state

@@ -16,7 +16,8 @@ import pytest
 
 from brain.pose import Pose
 from modules.lidar.cluster import ClusterParams, describe_scan, split
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, ScanSpec, Scene, cast, sensor_pose
+from modules.lidar.scan import HORIZONTAL_MOUNTS, Mount, ScanSpec, sensor_pose
+from modules.sim.lidar.raycast import Scene, cast
 from modules.sim.world import Shape, WorldObstacle
 from protocol.messages import Obstacle
 

@@ -8,15 +8,9 @@ import numpy as np
 import pytest
 
 from brain.pose import Pose
-from modules.lidar.profile import (
-    VERTICAL_MOUNTS,
-    Hazard,
-    VerticalMount,
-    detect_hazards,
-    first_hits,
-    ground_height,
-    profile_scan,
-)
+from modules.lidar.profile import VERTICAL_MOUNTS, Hazard, VerticalMount, detect_hazards
+from modules.sim.lidar.profile import first_hits, profile_scan
+from modules.sim.terrain import ground_height
 from modules.sim.world import HazardKind, TerrainHazard
 from protocol.messages import Sensor, SurfaceProfile
 

@@ -9,7 +9,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from brain.pose import Pose
-from modules.lidar.raycast import HORIZONTAL_MOUNTS, Mount, Scan, ScanSpec, Scene, cast, sensor_pose
+from modules.lidar.scan import HORIZONTAL_MOUNTS, Mount, Scan, ScanSpec, sensor_pose
+from modules.sim.lidar.raycast import Scene, cast
 from modules.sim.world import Shape, WorldObstacle
 
 AT_ORIGIN = Mount(0.0, 0.0, 0.7)

@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 
 from brain.pose import Pose
-from modules.lidar.profile import VERTICAL_MOUNTS, first_hits, ground_height
-from modules.lidar.raycast import Scene, descending_ray_ranges
-from modules.lidar.sweep import SWEEP_MOUNT, SweepMount, describe_sweep, sweep_scan
+from modules.lidar.profile import VERTICAL_MOUNTS
+from modules.lidar.sweep import SWEEP_MOUNT, SweepMount, describe_sweep
+from modules.sim.lidar.profile import first_hits
+from modules.sim.lidar.raycast import Scene, descending_ray_ranges
+from modules.sim.lidar.sweep import sweep_scan
+from modules.sim.terrain import ground_height
 from modules.sim.world import HazardKind, Shape, TerrainHazard, WorldObstacle
 from protocol.messages import GroundStretch, GroundSweep, Sensor
 

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from modules.lidar.profile import ground_height
 from modules.sim.camera import solids, terrain
 from modules.sim.camera.road import draw_decal, lane_arrays
 from modules.sim.camera.textures import FIXED_ONE, MipTexture, periodic_noise, remap_wrapped, texture_set
+from modules.sim.terrain import ground_height
 from modules.sim.world import HazardKind, LaneBorderLine, Shape, TerrainHazard, WorldObstacle
 
 

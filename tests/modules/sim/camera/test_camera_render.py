@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from modules.esvs.geometry import RASCAL_RIG, StereoRig
-from modules.lidar.profile import ground_height
 from modules.sim.camera import (
     LABEL_GROUND,
     LABEL_HAZARD,
@@ -21,6 +20,7 @@ from modules.sim.camera import (
     StereoRenderer,
     render_pair,
 )
+from modules.sim.terrain import ground_height
 from modules.sim.world import (
     HazardKind,
     LaneBorderLine,
