@@ -25,7 +25,7 @@ from rich.console import Console
 from benchmarks.report import Table, machine_line, print_table
 from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
-from modules.nav_sensors import replay
+from modules.sim.nav import replay
 
 BUDGET_US = 200.0
 SECONDS = 60.0

@@ -31,7 +31,7 @@ class Delegated(NamedTuple):
 DELEGATED_TOOLS: dict[tuple[str, ...], Delegated] = {
     ("run",): Delegated("rascal.run", "run a deployment's modules here, supervised, until the course is done", False),
     ("ins", "accuracy"): Delegated(
-        "modules.nav_sensors.accuracy", "replay a scenario through the navigation filters", False
+        "modules.sim.nav.accuracy", "replay a scenario through the navigation filters", False
     ),
     ("esvs", "eval"): Delegated("modules.esvs.evaluate", "stereo accuracy on a pair with ground truth", False),
     ("spoof",): Delegated("rascal.spoof", "hostile datagrams for fault testing (bounded, loopback only)", True),

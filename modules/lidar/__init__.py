@@ -1,5 +1,7 @@
-"""Simulated lidars: two horizontal (obstacles) and two vertical (ground profile) scanners."""
+"""The lidars: what a vehicle makes of its scanners' returns (scan.py, cluster.py, profile.py,
+sweep.py). The ``lidar`` process is a simulated one (modules/sim/lidar/process.py): it plays the
+scanners from the simulator's truth and publishes what they would."""
 
-from modules.lidar.module import Lidar as MODULE
+from modules.sim.lidar.process import Lidar as MODULE
 
 __all__ = ["MODULE"]

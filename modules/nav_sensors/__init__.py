@@ -1,5 +1,6 @@
-"""Simulated navigation sensors: IMU, DGPS, speedometer and two magnetometers from the simulator's truth."""
+"""The ``nav_sensors`` process: IMU, DGPS, speedometer and two magnetometers, simulated from the
+simulator's truth (modules/sim/nav/)."""
 
-from modules.nav_sensors.module import NavSensors as MODULE
+from modules.sim.nav.process import NavSensors as MODULE
 
 __all__ = ["MODULE"]

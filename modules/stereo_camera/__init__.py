@@ -1,5 +1,6 @@
-"""The simulated ESVS cameras: stereo pairs of the scenario world into a shared-memory frame ring."""
+"""The ``stereo_camera`` process: the simulated ESVS cameras, stereo pairs of the scenario world
+into a shared-memory frame ring (modules/sim/camera/)."""
 
-from modules.stereo_camera.module import StereoCamera as MODULE
+from modules.sim.camera.process import StereoCamera as MODULE
 
 __all__ = ["MODULE"]

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from modules.lidar.module import SOURCE_IDS as LIDAR_SOURCE_IDS
+from modules.sim.lidar.process import SOURCE_IDS as LIDAR_SOURCE_IDS
 from protocol import channels
 from protocol.codec import Envelope
 from protocol.messages import (

@@ -12,8 +12,8 @@ import pytest
 
 from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
-from modules.nav_sensors import replay as sim
-from modules.nav_sensors.replay import Drive, Errors, Run
+from modules.sim.nav import replay as sim
+from modules.sim.nav.replay import Drive, Errors, Run
 from modules.sim.vehicle import VehicleState
 from modules.sim.world import SensorFault
 from protocol.messages import ActuatorCommand, NavQuality

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from modules.lidar import module as lidar_module
-from modules.lidar.module import CHANNELS, SOURCE_IDS, Lidar, LidarConfig
+from modules.sim.lidar import process as lidar_module
+from modules.sim.lidar.process import CHANNELS, SOURCE_IDS, Lidar, LidarConfig
 from modules.sim.world import FaultKind, HazardKind, SensorFault, Shape, TerrainHazard, World, WorldObstacle
 from protocol import channels
 from protocol.auth import Keyring

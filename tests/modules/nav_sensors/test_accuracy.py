@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from modules.nav_sensors.accuracy import evaluate, main
+from modules.sim.nav.accuracy import evaluate, main
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 
 

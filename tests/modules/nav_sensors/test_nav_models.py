@@ -11,7 +11,7 @@ import pymap3d
 from hypothesis import given
 from hypothesis import strategies as st
 
-from modules.nav_sensors.models import (
+from modules.sim.nav.models import (
     DEG_PER_H_TO_RADPS,
     MAGNETOMETER_1,
     MAGNETOMETER_2,

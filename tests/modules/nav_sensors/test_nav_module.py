@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from brain.corridor import GeodeticOrigin
-from modules.nav_sensors.module import NavSensors, NavSensorsConfig, RateGate, ScenarioInputs, SensorSuite
+from modules.sim.nav.process import NavSensors, NavSensorsConfig, RateGate, ScenarioInputs, SensorSuite
 from modules.sim.world import FaultKind, SensorFault
 from protocol import channels
 from protocol.auth import Keyring

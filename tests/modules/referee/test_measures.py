@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from modules.nav_sensors import replay
 from modules.referee.measures import Referee, distance_to_polyline
+from modules.sim.nav import replay
 from modules.sim.scenario import DEFAULT_SCENARIO, load_scenario
 from modules.sim.simulator import WorldState
 from modules.sim.vehicle import VehicleParams

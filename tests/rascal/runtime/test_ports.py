@@ -3,6 +3,7 @@ channels its code names are the ones it declares."""
 
 from __future__ import annotations
 
+import inspect
 import re
 import subprocess
 import sys
@@ -22,8 +23,11 @@ CHANNEL_NAMES = {name for name in dir(channels) if name.isupper() and isinstance
 
 
 def channels_named_in_code(name: str) -> set[str]:
+    """The channels named in the module class's own folder (a simulated sensor's process lives
+    in the simulator's: modules/sim/lidar/process.py for ``lidar``)."""
+    folder = Path(inspect.getsourcefile(module_class(name)) or "").parent
     found: set[str] = set()
-    for source in (ROOT / "modules" / name).rglob("*.py"):
+    for source in folder.glob("*.py"):
         found |= set(re.findall(r"\bchannels\.([A-Z][A-Z0-9_]*)\b", source.read_text()))
     return {getattr(channels, constant) for constant in found & CHANNEL_NAMES}
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from modules.esvs.frames import Frame, RingReader, _attach
+from modules.sim.camera.process import FIRST_RENDER_S, MARGIN_S, StereoCamera, StereoCameraConfig
 from modules.sim.world import FaultKind, SensorFault, Shape, World, WorldObstacle
-from modules.stereo_camera.module import FIRST_RENDER_S, MARGIN_S, StereoCamera, StereoCameraConfig
 from protocol import channels
 from protocol.auth import Keyring
 from protocol.messages import SimTruth

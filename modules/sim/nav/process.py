@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from modules.nav_sensors.models import (
+from modules.sim.nav.models import (
     MAGNETOMETER_1,
     MAGNETOMETER_2,
     GeodeticOrigin,

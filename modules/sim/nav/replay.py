@@ -19,7 +19,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 from brain.corridor import CoursePath, GeodeticOrigin
-from modules.nav_sensors.models import (
+from modules.sim.nav.models import (
     MAGNETOMETER_1,
     MAGNETOMETER_2,
     GpsModel,

@@ -36,6 +36,7 @@ import numpy as np
 import pymap3d
 
 from brain.corridor import WGS84, GeodeticOrigin
+from brain.pose import PoseLike
 from modules.sim.sensing import NO_FAULT, FaultEffect, StuckGate, fault_effect
 from modules.sim.world import FaultKind, SensorFault, World
 from protocol.messages import GpsFix, ImuSample, MagHeading, NavQuality, WheelSpeed
@@ -52,17 +53,8 @@ MILLI_G_TO_MPS2 = STANDARD_GRAVITY_MPS2 / 1000.0
 M = TypeVar("M")
 
 
-class TruthState(Protocol):
+class TruthState(PoseLike, Protocol):
     """What the sensors see of a true state sample (``protocol.messages.SimTruth`` is one)."""
-
-    @property
-    def east_m(self) -> float: ...
-
-    @property
-    def north_m(self) -> float: ...
-
-    @property
-    def yaw_rad(self) -> float: ...
 
     @property
     def speed_mps(self) -> float: ...

@@ -21,7 +21,7 @@ from rich.table import Table
 
 from modules.ins.cores import FILTERS
 from modules.ins.navigator import InsFilter
-from modules.nav_sensors import replay
+from modules.sim.nav import replay
 from modules.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from modules.sim.vehicle import VehicleState
 from modules.sim.world import SensorFault
