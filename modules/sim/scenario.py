@@ -41,6 +41,7 @@ from modules.sim.world import (
     World,
     WorldObstacle,
 )
+from rascal.runtime.toml_reader import TomlReader
 
 DEFAULT_SCENARIO = Path(__file__).resolve().parents[2] / "deploy" / "scenarios" / "mojave.toml"
 FOREVER_S = 1e12
@@ -147,71 +148,12 @@ def hazard_from_table(route: CoursePath, table: dict[str, Any]) -> TerrainHazard
     return _hazard(_Reader(Path("<generated>")), route, table, "hazard")
 
 
-class _Reader:
-    """Typed, named access to the TOML document."""
+class _Reader(TomlReader):
+    """The shared readers (rascal/runtime/toml_reader.py) and a scenario's own: enum choices and
+    [low, high] ranges."""
 
     def __init__(self, path: Path) -> None:
-        self.path = path
-
-    def fail(self, where: str, message: str) -> ScenarioError:
-        return ScenarioError(f"{self.path}: {where}: {message}" if where else f"{self.path}: {message}")
-
-    def keys(self, table: dict[str, Any], where: str, allowed: set[str]) -> None:
-        unknown = sorted(set(table) - allowed)
-        if unknown:
-            raise self.fail(where or "top level", f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
-
-    def table(self, doc: dict[str, Any], name: str, required: bool = False) -> dict[str, Any]:
-        value = doc.get(name)
-        if value is None:
-            if required:
-                raise self.fail(name, "table is required")
-            return {}
-        if not isinstance(value, dict):
-            raise self.fail(name, "must be a table")
-        return value
-
-    def array(self, doc: dict[str, Any], name: str) -> list[dict[str, Any]]:
-        value = doc.get(name, [])
-        if not isinstance(value, list) or not all(isinstance(item, dict) for item in value):
-            raise self.fail(name, f"must be an array of tables ([[{name}]])")
-        return value
-
-    def number(
-        self,
-        table: dict[str, Any],
-        where: str,
-        key: str,
-        default: float | None = None,
-        low: float = -math.inf,
-        high: float = math.inf,
-    ) -> float:
-        value = table.get(key, default)
-        if value is None:
-            raise self.fail(f"{where}.{key}", "is required")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise self.fail(f"{where}.{key}", f"expected a number, got {value!r}")
-        if not low <= value <= high:
-            raise self.fail(f"{where}.{key}", f"{value} is outside {low}..{high}")
-        return float(value)
-
-    def integer(self, table: dict[str, Any], where: str, key: str, default: int | None = None) -> int:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(f"{where}.{key}", f"expected an integer, got {value!r}")
-        return value
-
-    def boolean(self, table: dict[str, Any], where: str, key: str, default: bool) -> bool:
-        value = table.get(key, default)
-        if not isinstance(value, bool):
-            raise self.fail(f"{where}.{key}", f"expected true or false, got {value!r}")
-        return value
-
-    def string(self, table: dict[str, Any], where: str, key: str, default: str | None = None) -> str:
-        value = table.get(key, default)
-        if not isinstance(value, str):
-            raise self.fail(f"{where}.{key}", f"expected a string, got {value!r}")
-        return value
+        super().__init__(path, ScenarioError)
 
     def choice(self, table: dict[str, Any], where: str, key: str, enum: Any, default: str | None = None) -> Any:
         text = self.string(table, where, key, default)

@@ -60,6 +60,7 @@ from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
 from rascal.runtime.config import ConfigError, build_config, flatten_values, merge_values, nest, shared_sections
 from rascal.runtime.launch import module_class
+from rascal.runtime.toml_reader import TomlReader
 
 DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "localhost.toml"
 SHARED_SETTINGS = ("scenario", "course", "origin")
@@ -200,17 +201,14 @@ def load_deployment(path: str | Path = DEFAULT_DEPLOYMENT) -> Deployment:
     return _Parser(path).deployment(doc)
 
 
-class _Parser:
+class _Parser(TomlReader):
     def __init__(self, path: Path) -> None:
-        self.path = path
+        super().__init__(path, DeploymentError)
         self.base = path.resolve().parent
-
-    def fail(self, key: str, problem: str) -> DeploymentError:
-        return DeploymentError(f"{self.path}: {key}: {problem}")
 
     def deployment(self, doc: dict[str, Any]) -> Deployment:
         self.keys(doc, "", {"deployment", "hosts", "modules", "faults", "authority", *SHARED_TABLES})
-        head = self.table(doc, "deployment")
+        head = self.table(doc, "deployment", required=True)
         self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
         hosts_table = self.table(doc, "hosts", required=False)
         hosts: dict[str, str] = {}
@@ -229,7 +227,7 @@ class _Parser:
         }
         self.shared_tables = {name: self.table(doc, name, required=False) for name in SHARED_TABLES}
         self.checked_tables: set[str] = set()
-        modules_table = self.table(doc, "modules")
+        modules_table = self.table(doc, "modules", required=True)
         if not modules_table:
             raise self.fail("modules", "a deployment needs at least one module")
         specs = [self.module(label, table, hosts, explicit_hosts, shared) for label, table in modules_table.items()]
@@ -406,45 +404,6 @@ class _Parser:
             if name not in known:
                 raise self.fail(f"{where}.{key}", f"{name!r} is not declared: {sorted(known)}")
         return value
-
-    # -- typed access ------------------------------------------------------------------------
-
-    def keys(self, table: dict[str, Any], where: str, allowed: set[str]) -> None:
-        unknown = sorted(set(table) - allowed)
-        if unknown:
-            raise self.fail(f"{where}.{unknown[0]}" if where else unknown[0], f"unknown key; known: {sorted(allowed)}")
-
-    def table(self, doc: dict[str, Any], key: str, required: bool = True) -> dict[str, Any]:
-        if key not in doc:
-            if required:
-                raise self.fail(key, "missing table")
-            return {}
-        found = doc[key]
-        if not isinstance(found, dict):
-            raise self.fail(key, "expected a table")
-        return found
-
-    def string(self, table: dict[str, Any], where: str, key: str, default: str | None = None) -> str:
-        if key not in table:
-            if default is None:
-                raise self.fail(f"{where}.{key}", "missing")
-            return default
-        value = table[key]
-        if not isinstance(value, str):
-            raise self.fail(f"{where}.{key}", f"expected a string, got {value!r}")
-        return value
-
-    def integer(self, table: dict[str, Any], where: str, key: str, default: int) -> int:
-        value = table.get(key, default)
-        if not isinstance(value, int) or isinstance(value, bool):
-            raise self.fail(f"{where}.{key}", f"expected an integer, got {value!r}")
-        return value
-
-    def number(self, table: dict[str, Any], where: str, key: str, default: float) -> float:
-        value = table.get(key, default)
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise self.fail(f"{where}.{key}", f"expected a number, got {value!r}")
-        return float(value)
 
     def path_or_none(self, head: dict[str, Any], key: str) -> Path | None:
         text = self.string(head, "deployment", key, default="")
