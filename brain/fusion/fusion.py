@@ -32,7 +32,16 @@ from brain.fusion.cost import CostConfig, CostMap, build_cost_map, hazard_probab
 from brain.fusion.evidence import EvidenceLayers, Layer
 from brain.fusion.poses import PoseHistory, heading_std_rad
 from brain.fusion.profile import classify_profile
-from brain.fusion.raster import Stamp, boxes, rectangles, sensor_frame, strips, vehicle_frame, view_polygon
+from brain.fusion.raster import (
+    Stamp,
+    boxes,
+    rectangles,
+    sensor_frame,
+    slanted_boxes,
+    strips,
+    vehicle_frame,
+    view_polygon,
+)
 from brain.fusion.sensors import DEFAULT_SENSOR_MODELS, SensorClass, SensorModel
 from brain.fusion.snapshot import encode_snapshot
 from brain.fusion.window import WindowPlacement
@@ -320,8 +329,13 @@ class HazardFusion:
             frame.to_enu(boxes(*(rows[level, :4] + (-half, half, 0.0, 0.0)).T)), model.miss_log_odds * weight
         )
         noise = model.noise_at(near[~level])
-        grown = rows[~level, :4] + (-back_m, half, 0.0, 0.0) + np.outer(noise, (-1.0, 1.0, -1.0, 1.0))
-        self.stamp.fill(frame.to_enu(boxes(*grown.T)), model.hit_log_odds * weight)
+        grown = rows[~level, :4] + np.outer(noise, (-1.0, 1.0, -1.0, 1.0))
+        # The reach back and ahead follows the beams (a box seen off to the side is a slab of a
+        # slanting run: modules/lidar/sweep.py), not the vehicle's x axis.
+        centre_x, centre_y = (grown[:, 0] + grown[:, 1]) / 2 - model.x_m, (grown[:, 2] + grown[:, 3]) / 2 - model.y_m
+        slope = centre_y / np.maximum(centre_x, 1.0)
+        outlines = slanted_boxes(*grown.T, back_m, half, slope)
+        self.stamp.fill(frame.to_enu(outlines), model.hit_log_odds * weight)
         self.layers.add(model.sensor_class, self.stamp)
         self._fused(message.sensor, t_meas_ns, len(rows))
         return True

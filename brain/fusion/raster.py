@@ -130,6 +130,34 @@ def boxes(x_from_m: FloatArray, x_to_m: FloatArray, y_from_m: FloatArray, y_to_m
     return np.stack([np.column_stack(corner) for corner in corners], axis=1).reshape(-1, 4, 2)
 
 
+def slanted_boxes(
+    x_from_m: FloatArray,
+    x_to_m: FloatArray,
+    y_from_m: FloatArray,
+    y_to_m: FloatArray,
+    back_m: float,
+    ahead_m: float,
+    slope: FloatArray,
+) -> FloatArray:
+    """(n, 8, 2) outlines of boxes (vehicle frame) reaching ``back_m`` behind and ``ahead_m``
+    beyond their x ends along their beams: sideways by ``slope`` (dy/dx) per metre, the way the
+    beam that saw the box moves across the ground. Extended square instead, a box seen 30 deg off
+    to the side would reach 0.35 m beside what the beam crossed for every 0.6 m of depth."""
+    back_x, ahead_x = x_from_m - back_m, x_to_m + ahead_m
+    back_y, ahead_y = -back_m * slope, ahead_m * slope
+    corners = (
+        (back_x, y_from_m + back_y),
+        (x_from_m, y_from_m),
+        (x_to_m, y_from_m),
+        (ahead_x, y_from_m + ahead_y),
+        (ahead_x, y_to_m + ahead_y),
+        (x_to_m, y_to_m),
+        (x_from_m, y_to_m),
+        (back_x, y_to_m + back_y),
+    )
+    return np.stack([np.column_stack(corner) for corner in corners], axis=1).reshape(-1, 8, 2)
+
+
 class Stamp:
     """One message's changes to a layer: polygons filled with values into a float32 scratch that is
     zero elsewhere, then added to the layer in one pass over the box they touched.

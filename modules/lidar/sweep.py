@@ -16,7 +16,9 @@ box in the vehicle frame:
 - level: the box around its returns;
 - low: from where the beams met the plane to where they came back: they passed above the ground
   all that way, so the ground there is lower than the plane (by step_m from 0.7 m on; the drop
-  that took it lower begins at the plane or nearer, the way a ditch's near wall does);
+  that took it lower begins at the plane or nearer, the way a ditch's near wall does). Beams off
+  to the side drift sideways as they go, so a low run is cut into slabs across the x axis, each
+  covering only the beams low in it (at most ``max_slant_m`` of drift per slab);
 - high: around its returns (what lies behind is hidden), cut into pieces at most ``max_depth_m``
   deep: a box around a face seen at a slant reaches past its ends by up to its depth, and a
   rock's side of a passage 2.7 m wide came out 0.3-0.6 m wider with one box per face.
@@ -38,6 +40,7 @@ import numpy as np
 from protocol.messages import GroundStretch, GroundSweep
 
 LEVEL, LOW, HIGH = 0, -1, 1
+MAX_SLABS = 16  # a low run's boxes at most (a 2 m run 30 deg off to the side needs about 7)
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,7 @@ def describe_sweep(
     step_m: float = 0.04,
     max_piece_m: float = 2.0,
     max_depth_m: float = 0.25,
+    max_slant_m: float = 0.2,
 ) -> GroundSweep:
     """The returns as level, low and high stretches (module docstring), right to left."""
     b, t, z = returns.bearings_rad, returns.distance_m, returns.height_m
@@ -96,7 +100,13 @@ def describe_sweep(
     # Where a low beam met the plane: the ground beyond lay below it, so the drop began nearer.
     met = mount.x_m + mount.z_m / returns.slopes * np.cos(b)
     runs = _runs(np.isfinite(t), kind, x.tolist(), y.tolist(), max_piece_m, max_depth_m)
-    return GroundSweep(sensor, tuple(_stretch(run, int(kind[run.start]), x, y, z, met, reach) for run in runs))
+    stretches: list[GroundStretch] = []
+    for run in runs:
+        if kind[run.start] == LOW:
+            stretches += _low_slabs(b[run], met[run], x[run], float(z[run].min()), mount, half, max_slant_m)
+        else:
+            stretches.append(_stretch(run, int(kind[run.start]), x, y, z, reach))
+    return GroundSweep(sensor, tuple(stretches))
 
 
 def _runs(
@@ -126,18 +136,40 @@ def _runs(
 
 
 def _stretch(
-    run: slice,
-    kind: int,
-    x: np.ndarray,
-    y: np.ndarray,
-    z: np.ndarray,
-    met: np.ndarray,
-    reach: tuple[np.ndarray, np.ndarray],
+    run: slice, kind: int, x: np.ndarray, y: np.ndarray, z: np.ndarray, reach: tuple[np.ndarray, np.ndarray]
 ) -> GroundStretch:
-    """The box of the returns ``run`` (consecutive beams of one kind)."""
+    """The box of the level or high returns ``run`` (consecutive beams of one kind)."""
     if kind == LEVEL:
         return GroundStretch(float(x[run].min()), float(x[run].max()), float(y[run].min()), float(y[run].max()), 0.0)
     right, left = float(reach[0][run].min()), float(reach[1][run].max())
-    if kind == LOW:
-        return GroundStretch(float(met[run].min()), float(x[run].max()), right, left, float(z[run].min()))
     return GroundStretch(float(x[run].min()), float(x[run].max()), right, left, float(z[run].max()))
+
+
+def _low_slabs(
+    bearings: np.ndarray,
+    met: np.ndarray,
+    x: np.ndarray,
+    depth_m: float,
+    mount: SweepMount,
+    half_rad: float,
+    max_slant_m: float,
+) -> list[GroundStretch]:
+    """A low run's ground, each beam's from where it met the plane to where it came back, as
+    boxes cut across the vehicle's x axis. A beam at a slant drifts sideways as it goes: one box
+    from the nearest meeting to the farthest return covered ground beside every beam (a ditch
+    seen 30 deg off to the side came out a metre wider at its end). Each slab spans at most
+    ``max_slant_m`` of that drift and covers, across its depth, the beams low there, each to
+    half a beam spacing either side."""
+    near, far = float(met.min()), float(x.max())
+    drift_m = float(np.max(np.abs(np.tan(bearings)) * (x - met)))
+    edges = np.linspace(near, far, min(MAX_SLABS, max(1, math.ceil(drift_m / max_slant_m))) + 1)
+    right_tan, left_tan = np.tan(bearings - half_rad), np.tan(bearings + half_rad)
+    slabs = []
+    for start, end in itertools.pairwise(edges.tolist()):
+        low = (met <= end) & (x >= start)  # the beams low somewhere in this slab
+        # Each beam's lateral position is linear in x: its extremes are at its span's ends in the slab.
+        ends = np.stack((np.maximum(start, met[low]), np.minimum(end, x[low]))) - mount.x_m
+        right = mount.y_m + float(np.min(ends * right_tan[low]))
+        left = mount.y_m + float(np.max(ends * left_tan[low]))
+        slabs.append(GroundStretch(start, end, right, left, depth_m))
+    return slabs

@@ -131,6 +131,32 @@ def test_sweeps_driving_up_to_the_wash_map_its_near_edge(metres_per_sweep: float
         assert cost_map.lethal[row, col], f"the wash's near edge at {lateral:+.1f} m is not a hazard"
 
 
+@pytest.mark.parametrize("angle_deg", [0.0, -32.0])
+def test_a_ditch_seen_off_to_the_side_at_a_slant_keeps_its_end(angle_deg: float) -> None:
+    """gen-2012's wash lay 32 deg across the vehicle's way, seen near the edge of the sweep's
+    view: its end came out 0.9-1.3 m wider on the lane side, and a fair lane closed. Driving up to
+    it sweep after sweep, its end now lands within 0.5 m (half a beam spacing, the noise, the
+    line's own depth and a cell), as straight ahead."""
+    yaw, north = math.radians(angle_deg), -17.0 if angle_deg else 1.8
+    ditch = TerrainHazard("wash", HazardKind.DITCH, 80.0, north, yaw, length_m=2.761, width_m=3.265, magnitude_m=0.876)
+    fusion, rng, rate_hz, speed_mps = HazardFusion(), np.random.default_rng(1), 37.5, 4.0
+    for k in range(int(40.0 / speed_mps * rate_hz)):  # from 10 m on to 50 m: the line crosses it
+        t_ns, east = round(k * 1e9 / rate_hz), 10.0 + k * speed_mps / rate_hz
+        fusion.add_pose(t_ns, state(east, 0.0, 0.0, speed=speed_mps))
+        returns = sweep_scan([ditch], Scene.from_obstacles(()), Pose(east, 0.0, 0.0), SWEEP_MOUNT, rng)
+        assert fusion.add_ground_sweep(t_ns, describe_sweep(returns, SWEEP_MOUNT, int(Sensor.LIDAR_SWEEP)))
+    cost_map = fusion.cost_map()
+    for u in (-1.0, 0.0):
+        across = np.arange(-4.0, 4.0, 0.05)
+        points = [
+            (80.0 + u * math.cos(yaw) - v * math.sin(yaw), north + u * math.sin(yaw) + v * math.cos(yaw))
+            for v in across
+        ]
+        hazard = across[[probability_at(cost_map, *point) >= 0.8 for point in points]]
+        assert hazard.min() >= -1.63 - 0.5 and hazard.max() <= 1.63 + 0.5
+        assert hazard.min() <= -1.63 + 0.2 and hazard.max() >= 1.63 - 0.2  # all of it, though
+
+
 def test_bad_stretches_are_counted_and_dropped() -> None:
     fusion = parked(EAST, NORTH, YAW)
     good = GroundStretch(LINE_M, LINE_M, -2.0, 2.0, 0.0)

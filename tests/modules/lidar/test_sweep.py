@@ -61,7 +61,8 @@ def test_the_wash_is_found_end_to_end_in_every_sweep_while_the_line_crosses_it()
         found.append(k)
         assert min(s.y_right_m for s in low) == pytest.approx(-7.0, abs=0.2)
         assert max(s.y_left_m for s in low) == pytest.approx(7.0, abs=0.2)
-        assert all(s.y_left_m - s.y_right_m <= 2.0 + 0.4 for s in low)  # pieces, not one slab
+        # Pieces, not one box: 2 m, half a beam spacing either side, and a slab's slant (0.2 m).
+        assert all(s.y_left_m - s.y_right_m <= 2.0 + 0.4 + 0.2 for s in low)
         # The low ground lies within the wash, and level ground is claimed only beside it.
         assert all(centre - 1.25 <= s.x_near_m <= s.x_far_m <= centre + 1.25 for s in low)
         level = [s for s in stretches if s.height_m == 0.0]
