@@ -70,3 +70,16 @@ def test_a_port_is_one_table_row() -> None:
     for bad in ({"direction": "both"}, {"carries": "a | b"}, {"rate": ""}):
         with pytest.raises(ValueError):
             Port(**({"direction": "in", "channel": "`PATH`", "carries": "Path", "rate": "10 Hz"} | bad))  # type: ignore[arg-type]
+
+
+SIMULATED_PROCESSES = ["modules.sim.lidar.process", "modules.sim.camera.process", "modules.sim.nav.process"]
+
+
+@pytest.mark.parametrize("process", SIMULATED_PROCESSES)
+def test_a_simulated_process_imports_first_without_a_cycle(process: str) -> None:
+    """The integration stack imports the lidar's process before its package: a fresh interpreter
+    importing each process module first, then its package's MODULE, must not meet a cycle."""
+    package = {"lidar": "modules.lidar", "camera": "modules.stereo_camera", "nav": "modules.nav_sensors"}
+    name = package[process.split(".")[2]]
+    code = f"import {process}; from {name} import MODULE; print(MODULE.name)"
+    subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
