@@ -25,7 +25,7 @@ from protocol.messages import Path, Severity
 STANDING_MPS = 0.1  # the stall: below 0.1 m/s
 MOVING_M = 1.0  # driven this far from where it stood: moving again
 BACKUPS_PER_PLACE = 3
-PLACE_M = 6.0  # stands this close to where a back-up started are the same place (a back-up is 4 m)
+PLACE_M = 8.0  # stands this close to where a back-up started are the same place (a back-up is 6 m)
 
 
 def leads_on(path: Path, east_m: float, north_m: float) -> bool:

@@ -21,6 +21,7 @@ from rascal.runtime.angles import wrap_angle
 
 COVARIANCE_SIZE = 25  # VehicleState.covariance: row-major 5x5 over east, north, yaw, speed, yaw rate
 YAW_VARIANCE_AT = 12
+MAX_OFFSET_M = 1e7  # a local ENU position beyond 10,000 km from the origin is garbage, not a place
 
 
 def heading_std_rad(state: VehicleState) -> float:
@@ -89,7 +90,11 @@ class PoseHistory:
         span kept. A state older than the newest is inserted in order; one with the same time
         replaces the stored one."""
         fields = (state.east_m, state.north_m, state.yaw_rad, state.vel_east_mps, state.vel_north_mps)
-        if state.quality == NavQuality.INVALID or not all(math.isfinite(v) for v in (*fields, state.yaw_rate_radps)):
+        if (
+            state.quality == NavQuality.INVALID
+            or not all(math.isfinite(v) for v in (*fields, state.yaw_rate_radps))
+            or max(abs(state.east_m), abs(state.north_m)) > MAX_OFFSET_M
+        ):
             self.stats.invalid += 1
             return False
         if self._times and t_meas_ns < self._times[-1] - self.span_ns:

@@ -5,7 +5,7 @@ cycle only ever looks at a few hundred metres. `LocalCorridor` hands out a `Corr
 the segments whose bands can reach a box (the clearance of a point inside the box is the same:
 a band that cannot reach the box cannot be the largest clearance of a point in the corridor), and
 rasterises the corridor onto a grid window for the search, one segment at a time over that
-segment's own bounding box, in float32.
+segment's own bounding box.
 """
 
 from __future__ import annotations
@@ -68,10 +68,15 @@ class LocalCorridor:
         return np.asarray(local.distance_to_edge(east, north), dtype=float).reshape(east.shape)
 
     def mask(self, window: GridWindow, clearance_m: float) -> NDArray[np.bool_]:
-        """Cells whose centre is at least ``clearance_m`` inside the corridor (``distance_to_edge``
-        >= clearance_m), one segment's bounding box at a time; distances compared squared."""
+        """Cells whose centre is at least ``clearance_m`` (>= 0) inside the corridor."""
+        return self.depth(window) >= clearance_m
+
+    def depth(self, window: GridWindow) -> NDArray[np.float64]:
+        """`distance_to_edge` at every cell centre of ``window`` inside the corridor, -inf at
+        those outside (a lower bound, as the search's Lipschitz bounds need), one segment's
+        bounding box at a time."""
         res = window.resolution_m
-        out = np.zeros(window.shape, dtype=bool)
+        out = np.full(window.shape, -np.inf)
         box = (
             window.origin_east_m,
             window.origin_north_m,
@@ -80,9 +85,7 @@ class LocalCorridor:
         )
         c = self.corridor
         for i in self.segments_near(box):
-            reach = float(c.half_width_m[i]) - clearance_m
-            if reach < 0.0:
-                continue
+            reach = float(c.half_width_m[i])
             (e0, n0), (e1, n1) = c.start_m[i], c.end_m[i]
             col_lo = max(0, int(np.floor((min(e0, e1) - reach - window.origin_east_m) / res)))
             col_hi = min(window.cols, int(np.ceil((max(e0, e1) + reach - window.origin_east_m) / res)) + 1)
@@ -91,9 +94,9 @@ class LocalCorridor:
             if col_lo >= col_hi or row_lo >= row_hi:
                 continue
             # Cell centres relative to the segment start: separable, so rows and columns stay 1-D.
-            rel_e = (window.origin_east_m + (np.arange(col_lo, col_hi) + 0.5) * res - e0).astype(np.float32)
-            rel_n = (window.origin_north_m + (np.arange(row_lo, row_hi) + 0.5) * res - n0).astype(np.float32)
-            de, dn = np.float32(e1 - e0), np.float32(n1 - n0)
+            rel_e = window.origin_east_m + (np.arange(col_lo, col_hi) + 0.5) * res - e0
+            rel_n = window.origin_north_m + (np.arange(row_lo, row_hi) + 0.5) * res - n0
+            de, dn = e1 - e0, n1 - n0
             length2 = de * de + dn * dn
             along = rel_n[:, None] * dn + rel_e[None, :] * de
             if length2 > 0:
@@ -101,8 +104,8 @@ class LocalCorridor:
                 np.clip(along, 0.0, 1.0, out=along)
             else:
                 along[:] = 0.0
-            off_e = rel_e[None, :] - along * de
-            off_n = rel_n[:, None] - along * dn
-            inside = off_e * off_e + off_n * off_n <= np.float32(reach * reach)
-            out[row_lo:row_hi, col_lo:col_hi] |= inside
+            inside = reach - np.hypot(rel_e[None, :] - along * de, rel_n[:, None] - along * dn)
+            inside[inside < 0.0] = -np.inf
+            block = out[row_lo:row_hi, col_lo:col_hi]
+            np.maximum(block, inside, out=block)
         return out

@@ -6,7 +6,10 @@ each sample must have
 * a lower bound on its distance to the nearest lethal cell centre of at least
   ``clearance_m + spacing / 2`` (the distance function is 1-Lipschitz, so nowhere between two
   samples is the polyline closer than ``clearance_m``: half width plus margin), and
-* a distance inside the corridor's edge of at least ``corridor_clearance_m + spacing / 2``.
+* a distance inside the corridor's edge of at least ``corridor_clearance_m + spacing / 2``,
+
+each grown by the front corners' swing where the track turns (`brain.planning.swing`): on a
+turn the body reaches beyond the rear axle's tube.
 
 The vehicle's nose reaches beyond the last point (the pose is the rear axle), so for a path that
 ends in a stop the straight extension of the last segment by the front overhang is checked for
@@ -24,6 +27,7 @@ from numpy.typing import NDArray
 
 from brain.planning.bounds import LocalCorridor
 from brain.planning.hazards import HazardField
+from brain.planning.swing import FrontSwing
 
 FloatArray = NDArray[np.float64]
 
@@ -98,19 +102,24 @@ class PathGate:
         clearance_m: float,
         corridor_clearance_m: float,
         spacing_m: float,
-        nose_m: float,
+        swing: FrontSwing,
     ) -> None:
         self.hazards = hazards
         self.corridor = corridor
         self.clearance_m = clearance_m
         self.corridor_clearance_m = corridor_clearance_m
         self.spacing_m = spacing_m
-        self.nose_m = nose_m
+        self.swing = swing
+
+    @property
+    def nose_m(self) -> float:
+        """How far the nose reaches beyond the rear axle."""
+        return self.swing.front_m
 
     def check(self, points: FloatArray, nose: bool = True) -> Verdict:
         """The verdict on the polyline through ``points`` (N x 2, N >= 1)."""
         samples = densify(points, self.spacing_m)
-        slack = samples.slack_m
+        slack = samples.slack_m + self.swing.along(points, samples.along_m)
         clear = self.hazards.clearance_bound(samples.east_m, samples.north_m)
         blocked = np.flatnonzero(clear < self.clearance_m + slack)
         inside = self.corridor.distance_to_edge(samples.east_m, samples.north_m)
@@ -120,23 +129,6 @@ class PathGate:
         if nose and math.isinf(blocked_at) and not self.nose_clear(np.asarray(points, dtype=float).reshape(-1, 2)):
             blocked_at = float(samples.along_m[-1])
         return Verdict(math.isinf(blocked_at) and math.isinf(outside_at), blocked_at, outside_at)
-
-    def clear_segments(self, start: FloatArray, end: FloatArray) -> NDArray[np.bool_]:
-        """For each straight segment start[i] -> end[i] (M x 2 each), whether it passes the gate."""
-        start = np.asarray(start, dtype=float).reshape(-1, 2)
-        end = np.asarray(end, dtype=float).reshape(-1, 2)
-        length = np.hypot(*(end - start).T)
-        pieces = np.maximum(1, np.ceil(length / self.spacing_m - 1e-9).astype(np.intp))
-        segment = np.repeat(np.arange(len(length)), pieces + 1)
-        first = np.concatenate([[0], np.cumsum(pieces + 1)[:-1]])
-        fraction = (np.arange(len(segment)) - np.repeat(first, pieces + 1)) / np.repeat(pieces, pieces + 1)
-        east = start[segment, 0] + fraction * (end - start)[segment, 0]
-        north = start[segment, 1] + fraction * (end - start)[segment, 1]
-        slack = np.repeat(length / pieces / 2.0, pieces + 1)
-        good = (self.hazards.clearance_bound(east, north) >= self.clearance_m + slack) & (
-            self.corridor.distance_to_edge(east, north) >= self.corridor_clearance_m + slack
-        )
-        return np.logical_and.reduceat(good, first) if len(first) else np.zeros(0, dtype=bool)
 
     def nose_clear(self, points: FloatArray) -> bool:
         """Whether the nose, stopped at the last point and pointing along the path's last half

@@ -10,6 +10,7 @@ from dataclasses import dataclass, fields
 
 from brain.planning.hybrid import HybridSettings
 from brain.planning.pursuit import Bicycle
+from brain.planning.swing import FrontSwing
 from brain.vehicle import VehicleGeometry
 from rascal.runtime.config import section, setting
 
@@ -195,6 +196,11 @@ class PlannerConfig:
     def corridor_clearance_m(self) -> float:
         """Least distance from the path to the corridor's edge."""
         return self.half_width_m + self.corridor_margin_m
+
+    @property
+    def front_swing(self) -> FrontSwing:
+        """How far the vehicle's front corners reach beyond its track on a turn."""
+        return FrontSwing(self.vehicle.front_m, self.vehicle.half_width_m)
 
     def map_reach_m(self, top_speed_mps: float) -> float:
         """How far from the corridor a map cell can still change a plan: within the gate's clearance

@@ -10,10 +10,12 @@ a table of displacements computed once per search (plain floats in the loop, hea
 A primitive is published as chords of at most ``_CHORD_M`` between points on its arc, and the
 search checks exactly what `PathGate` will check of them: samples along each chord at the gate's
 spacing, each with the gate's lower bound on the distance to lethal cell centres (the best of
-the four surrounding centres) at least its clearance plus half that spacing, and in a cell of
-the corridor mask (cells whose every point is inside the corridor by the gate's margin). A cell
-whose centre is clear by a cell's half diagonal more passes without the bound's arithmetic, and
-a step from a cell clear by its length and more needs no check at all. So every path returned
+the four surrounding centres) at least its clearance plus half that spacing, and the same bound
+on its depth inside the corridor; both grown by the front corners' swing
+(`brain.planning.swing`) of the tightest primitive among the step and those in the nose's
+length behind it. A sample whose cell's centre is clear by a cell's half diagonal more passes
+without the bound's arithmetic, and a step from a cell clear by its length and the swing at
+full lock more needs no check at all. So every path returned
 passes the gate (but for the nose at a stop, which the planner trims for), and its turns are the
 arcs' (no pursuit needed).
 
@@ -39,6 +41,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -48,12 +51,14 @@ from numpy.typing import NDArray
 
 from brain.grid import GridWindow
 from brain.planning.dubins import Pose, dubins_points
+from brain.planning.swing import FrontSwing
 
 FloatArray = NDArray[np.float64]
 
 _CHORD_M = 0.5  # published points along a primitive: the planner's track spacing
 _STEERING_FRACTIONS = (0.2, 0.6, 1.0)  # turns per step as fractions of the tightest, each side
 _EPSILON_M = 1e-6  # the gate recomputes samples from the published points: rounding
+_CURVATURE_ROUNDING = 1.001  # the gate's curvature from the published chords, against the arc's
 _MIDDLE_WEIGHT = 0.01  # a blocked search's target: nearest the goal, then nearest its middle
 
 
@@ -91,11 +96,13 @@ class Terrain:
 
     window: GridWindow
     clearance_m: NDArray[np.float32]  # HazardField.clearance_m: exact, padded by one ring of cells
-    inside: NDArray[np.bool_]  # corridor cells whose every point is inside by the gate's margin
+    corridor_depth_m: FloatArray  # LocalCorridor.depth: how far inside the corridor each centre is
     free: NDArray[np.bool_]  # cells a passing point may lie in: the cost-to-go's and reachability's
     weight: FloatArray  # each cell's step cost per metre, >= 1
     required_m: float  # the gate's clearance plus its half sample spacing
+    corridor_required_m: float  # the gate's corridor clearance plus its half sample spacing
     spacing_m: float  # the gate's sample spacing
+    swing: FrontSwing  # the gate's allowance for the front corners on a turn
 
 
 @dataclass(frozen=True)
@@ -117,32 +124,28 @@ def _flat(values: FloatArray) -> memoryview:
 class _Grid:
     """The terrain as flat buffers for the loop; cell indices into the window padded by one ring."""
 
-    def __init__(self, terrain: Terrain, reach_m: float) -> None:
+    def __init__(self, terrain: Terrain, reach_m: float, most_swing_m: float) -> None:
         w = terrain.window
         self.east0, self.north0, self.res = w.origin_east_m, w.origin_north_m, w.resolution_m
         self.inv_res = 1.0 / w.resolution_m
         self.rows, self.cols, self.stride = w.rows, w.cols, w.cols + 2
         self.spacing = terrain.spacing_m
-        # Room beyond the requirement at each centre; -inf outside the corridor mask, which only
-        # ever lowers the bound (a sample beside the corridor's edge and a hazard at once).
-        margin = terrain.clearance_m.astype(float) - (terrain.required_m + _EPSILON_M)
-        inside = np.pad(terrain.inside, 1, constant_values=False)
-        self.room = _flat(np.where(inside, margin, -np.inf))
+        # Room beyond both requirements at each centre: the least of two 1-Lipschitz fields (the
+        # clearance to hazards, the depth inside the corridor), so one bound serves both.
+        hazard_room = terrain.clearance_m.astype(float) - (terrain.required_m + _EPSILON_M)
+        corridor_room = np.pad(terrain.corridor_depth_m, 1, constant_values=-np.inf) - (
+            terrain.corridor_required_m + _EPSILON_M
+        )
+        room = np.minimum(hazard_room, corridor_room)
+        self.room = _flat(room)
         self.weight = _flat(np.pad(terrain.weight, 1, constant_values=1.0))
         self.sure = w.resolution_m * math.sqrt(2.0) / 2.0  # no point of a cell is further from its centre
-        self.deep = self._deep(margin, terrain.inside, reach_m)
-
-    def _deep(self, margin: FloatArray, inside: NDArray[np.bool_], reach_m: float) -> bytes:
-        """Cells from which every sample within ``reach_m`` of any point in them passes, so a
-        step from there needs no checks: the field at its centre beats the requirement by the
-        reach and three half diagonals (sample to its centre, the two centres, this point to
-        its centre; the field is 1-Lipschitz), and the corridor mask holds round it as far."""
-        radius = math.ceil((reach_m + 2.0 * self.sure) / self.res)
-        offsets = np.arange(-radius, radius + 1)
-        disc = (offsets[:, None] ** 2 + offsets[None, :] ** 2 <= radius**2).astype(np.uint8)
-        held = cv2.erode(inside.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        deep = held.astype(bool) & (margin[1:-1, 1:-1] >= reach_m + 3.0 * self.sure)
-        return np.pad(deep, 1, constant_values=False).ravel().tobytes()
+        # Cells from which every sample within the reach of any point in them passes, whatever
+        # the turn, so a step from there needs no checks: the room at its centre beats the
+        # swing at full lock by the reach and three half diagonals (sample to its centre, the
+        # two centres, this point to its centre).
+        deep = room >= reach_m + 3.0 * self.sure + most_swing_m
+        self.deep = deep.ravel().tobytes()
 
     def index(self, east: float, north: float) -> int:
         """Padded index of the cell holding the point, -1 outside the window."""
@@ -152,18 +155,19 @@ class _Grid:
             return -1
         return (int(v) + 1) * self.stride + int(u) + 1
 
-    def clear(self, east: float, north: float) -> bool:
-        """Whether a gate sample here passes (module docstring)."""
+    def clear(self, east: float, north: float, swing: float = 0.0) -> bool:
+        """Whether a gate sample here passes with the requirements grown by ``swing``."""
         i = self.index(east, north)
         if i < 0:
             return False
-        room = self.room[i]
+        room = self.room[i] - swing
         if room >= self.sure:
             return True
-        return room > -self.sure and self.bound_clear(east, north)
+        return room > -self.sure and self.bound_clear(east, north, swing)
 
-    def bound_clear(self, east: float, north: float) -> bool:
-        """`HazardField.clearance_bound` against the requirement, as the gate computes it."""
+    def bound_clear(self, east: float, north: float, swing: float) -> bool:
+        """`HazardField.clearance_bound` (and its like for the corridor's depth) against the
+        requirements grown by ``swing``, as the gate computes it."""
         u = (east - self.east0) * self.inv_res + 0.5
         v = (north - self.north0) * self.inv_res + 0.5
         col, row = math.floor(u), math.floor(v)
@@ -171,18 +175,18 @@ class _Grid:
         i = row * self.stride + col
         m, s, res = self.room, self.stride, self.res
         return (
-            m[i] >= res * math.hypot(fu, fv)
-            or m[i + 1] >= res * math.hypot(1.0 - fu, fv)
-            or m[i + s] >= res * math.hypot(fu, 1.0 - fv)
-            or m[i + s + 1] >= res * math.hypot(1.0 - fu, 1.0 - fv)
+            m[i] - swing >= res * math.hypot(fu, fv)
+            or m[i + 1] - swing >= res * math.hypot(1.0 - fu, fv)
+            or m[i + s] - swing >= res * math.hypot(fu, 1.0 - fv)
+            or m[i + s + 1] - swing >= res * math.hypot(1.0 - fu, 1.0 - fv)
         )
 
-    def chord_clear(self, a: tuple[float, float], b: tuple[float, float]) -> bool:
+    def chord_clear(self, a: tuple[float, float], b: tuple[float, float], swing: float) -> bool:
         """The gate's samples of the chord a -> b after a (b included), computed as it does."""
         de, dn = b[0] - a[0], b[1] - a[1]
         pieces = max(1, math.ceil(math.hypot(de, dn) / self.spacing - 1e-9))
         inner = ((a[0] + i / pieces * de, a[1] + i / pieces * dn) for i in range(1, pieces))
-        return all(self.clear(e, n) for e, n in inner) and self.clear(*b)
+        return all(self.clear(e, n, swing) for e, n in inner) and self.clear(*b, swing)
 
 
 @dataclass(frozen=True)
@@ -406,11 +410,19 @@ class _Search:
     def __init__(
         self, terrain: Terrain, settings: HybridSettings, start: Pose, target: _Target, goal_heading: float
     ) -> None:
-        self.grid = _Grid(terrain, settings.step_m)
         self.goal_heading = goal_heading
         self.settings = settings
         self.target = target
         self.turns = settings.turns()
+        # Each primitive's front swing (indexed like turns), and how many primitives back the
+        # nose reaches: a step's samples take the largest swing among it and those.
+        self.swing_of = [
+            terrain.swing.of(abs(turn) * settings.heading_step_rad / settings.step_m * _CURVATURE_ROUNDING) + _EPSILON_M
+            for turn in self.turns
+        ]
+        self.swing = terrain.swing
+        self.behind = math.ceil(terrain.swing.front_m / settings.step_m - 1e-9)
+        self.grid = _Grid(terrain, settings.step_m, max(self.swing_of))
         self.motion = _Motion.build(settings, self.turns, start[2], terrain.spacing_m)
         self.start = start
         tightest = max(self.turns)
@@ -479,6 +491,7 @@ class _Search:
         ends, mids, headings = motion.end[k], motion.points[k], self.next_heading[k]
         samples_east, samples_north = motion.samples_east[k], motion.samples_north[k]
         penalties = self.penalty[self.turn[node]]
+        swing_of, recent = self.swing_of, self.recent_swing(node)
         e0, n0, inv, cols, rows, stride = grid.east0, grid.north0, grid.inv_res, grid.cols, grid.rows, grid.stride
         deep = grid.deep[(int((north - n0) * inv) + 1) * stride + int((east - e0) * inv) + 1]
         cell_m, bin_cols, bins, step_m, closed, best_g = (
@@ -500,7 +513,10 @@ class _Search:
             known = best_g.get(key, math.inf)
             penalty = penalties[index]
             if g + step_m + penalty >= known or not (
-                deep or self._samples_clear(east, north, samples_east[index], samples_north[index])
+                deep
+                or self._samples_clear(
+                    east, north, samples_east[index], samples_north[index], max(recent, swing_of[index])
+                )
             ):
                 continue
             me, mn = mids[index][0]
@@ -525,7 +541,19 @@ class _Search:
             heapq.heappush(heap, (cost + s.heuristic_weight * left, len(self.key) - 1))
         return -1
 
-    def _samples_clear(self, east: float, north: float, offsets_east: list[float], offsets_north: list[float]) -> bool:
+    def recent_swing(self, node: int) -> float:
+        """The largest swing among the primitives that end at ``node``, as far back as the nose."""
+        swing = 0.0
+        for _ in range(self.behind):
+            if node <= 0:
+                break
+            swing = max(swing, self.swing_of[self.turn[node]])
+            node = self.parent[node]
+        return swing
+
+    def _samples_clear(
+        self, east: float, north: float, offsets_east: list[float], offsets_north: list[float], swing: float
+    ) -> bool:
         """`_Grid.clear` for a primitive's samples, inlined."""
         grid = self.grid
         room, sure = grid.room, grid.sure
@@ -535,10 +563,10 @@ class _Search:
             u, v = (e - e0) * inv, (n - n0) * inv
             if not (0.0 <= u < cols and 0.0 <= v < rows):
                 return False
-            r = room[(int(v) + 1) * stride + int(u) + 1]
+            r = room[(int(v) + 1) * stride + int(u) + 1] - swing
             if r >= sure:
                 continue
-            if r <= -sure or not grid.bound_clear(e, n):
+            if r <= -sure or not grid.bound_clear(e, n, swing):
                 return False
         return True
 
@@ -547,21 +575,56 @@ class _Search:
         pose = (self.east[node], self.north[node], self.start[2] + self.heading[node] * self.settings.heading_step_rad)
         for goal in self.target.poses(pose[0], pose[1], self.goal_heading):
             if self.grid.clear(goal[0], goal[1]):
-                tail = self._clear_curve(dubins_points(pose, goal, self.radius, _CHORD_M))
+                tail = self._clear_curve(node, dubins_points(pose, goal, self.radius, _CHORD_M))
                 if tail:
                     return tail
         return None
 
-    def _clear_curve(self, points: Iterator[tuple[float, float]]) -> list[tuple[float, float]] | None:
-        """The points after the first, if every chord between them is clear."""
+    def _clear_curve(self, node: int, points: Iterator[tuple[float, float]]) -> list[tuple[float, float]] | None:
+        """The points after the first (the node's), if every chord between them is clear. Each
+        chord's samples take the largest swing of the vertices within the nose behind its start,
+        curvatures computed from the points as the gate will (`brain.planning.swing`), and of
+        the node's own primitives while those are within the nose."""
         previous = next(points, None)
-        out = []
+        if previous is None:
+            return None
+        before = self.point_before(node)
+        history, front = self.recent_swing(node), self.swing.front_m
+        vertices: deque[tuple[float, float]] = deque()  # (along the tail, swing) within the nose
+        along, out = 0.0, []
         for point in points:
-            if not self.grid.chord_clear(previous, point):
+            if before is not None:
+                vertices.append((along, self.vertex_swing(before, previous, point)))
+            while vertices and vertices[0][0] < along - front:
+                vertices.popleft()
+            swing = max((swing for _along, swing in vertices), default=0.0)
+            if along < front:
+                swing = max(swing, history)
+            if not self.grid.chord_clear(previous, point, swing):
                 return None
             out.append(point)
-            previous = point
+            along += math.hypot(point[0] - previous[0], point[1] - previous[1])
+            before, previous = previous, point
         return out
+
+    def point_before(self, node: int) -> tuple[float, float] | None:
+        """The published point before ``node``'s (None for the start: the gate sees no vertex there)."""
+        if node <= 0:
+            return None
+        parent = self.parent[node]
+        arc = self.motion.points[self.heading[parent]][self.turn[node]]
+        de, dn = arc[-2] if len(arc) >= 2 else (0.0, 0.0)
+        return self.east[parent] + de, self.north[parent] + dn
+
+    def vertex_swing(self, a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> float:
+        """The swing at vertex ``b`` of the polyline a-b-c, its curvature as the gate computes it."""
+        first = math.hypot(b[0] - a[0], b[1] - a[1])
+        second = math.hypot(c[0] - b[0], c[1] - b[1])
+        if first <= 1e-9 or second <= 1e-9:
+            return 0.0
+        turn = math.remainder(math.atan2(c[1] - b[1], c[0] - b[0]) - math.atan2(b[1] - a[1], b[0] - a[0]), math.tau)
+        curvature = 2.0 * math.sin(abs(turn) / 2.0) / ((first + second) / 2.0)
+        return self.swing.of(curvature * _CURVATURE_ROUNDING) + _EPSILON_M
 
     def result(self, node: int, tail: list[tuple[float, float]], reached: bool, expansions: int) -> HybridResult:
         """The published points from the start through ``node`` (and an analytic tail)."""

@@ -174,7 +174,7 @@ class Planner:
             cfg.clearance_m,
             cfg.corridor_clearance_m,
             cfg.check_spacing_m,
-            cfg.vehicle.front_m,
+            cfg.front_swing,
         )
         cycle = _Cycle(self, gate, east, north, yaw, speed, max_speed_mps, s0, d0)
         # A map that does not cover the vehicle says nothing about where it is: do not drive on it.
@@ -423,14 +423,14 @@ class _Cycle:
         # 1-Lipschitz. Whether there is a way at all is asked of the possible cells: the sure ones
         # close a lane a few cells wide, which a pose search threads.
         diagonal = res * math.sqrt(2.0) / 2.0
-        corridor, clearance = self.planner.corridor, self.gate.hazards.clearance_m[1:-1, 1:-1]
+        depth, clearance = self.planner.corridor.depth(window), self.gate.hazards.clearance_m[1:-1, 1:-1]
 
-        def cells(slack: float) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-            inside = corridor.mask(window, cfg.corridor_clearance_m + slack)
-            return inside & (clearance >= cfg.clearance_m + slack), inside
+        def cells(slack: float) -> NDArray[np.bool_]:
+            return (depth >= cfg.corridor_clearance_m + slack) & (clearance >= cfg.clearance_m + slack)
 
-        free, inside = cells(cfg.check_spacing_m / 2.0 + diagonal)
-        possible, _ = cells(cfg.check_spacing_m / 2.0 - diagonal)
+        # The lattice's track turns as pure pursuit makes it: its cells keep the swing at full lock.
+        free = cells(cfg.check_spacing_m / 2.0 + diagonal + float(cfg.front_swing.at(1.0 / cfg.turning_radius_m)))
+        possible = cells(cfg.check_spacing_m / 2.0 - diagonal)
         heading = math.atan2(-normal[0], normal[1])  # the course's: the normal turned clockwise
         self._space = _SearchSpace(
             (start[0], start[1]),
@@ -438,7 +438,7 @@ class _Cycle:
             point + half_width * normal,
             heading,
             free,
-            inside,
+            depth,
             possible,
         )
         return self._space
@@ -534,11 +534,13 @@ class _Cycle:
         terrain = Terrain(
             gate.hazards.window,
             gate.hazards.clearance_m,
-            space.inside,
+            space.corridor_depth_m,
             space.possible,
             self.step_weight,
             gate.clearance_m + gate.spacing_m / 2.0,
+            gate.corridor_clearance_m + gate.spacing_m / 2.0,
             gate.spacing_m,
+            gate.swing,
         )
         pose = (self.east, self.north, self.yaw)
         result = hybrid_search(terrain, self.cfg.hybrid, pose, space.goal_a, space.goal_b, space.goal_heading)
@@ -708,8 +710,8 @@ class _SearchSpace:
     goal_a: FloatArray  # the goal: the corridor's cross-section from goal_a to goal_b
     goal_b: FloatArray
     goal_heading: float  # the course's heading there
-    free: NDArray[np.bool_]  # cells the lattice search may use: every point between them passes
-    inside: NDArray[np.bool_]  # cells inside the corridor by its clearance plus the slack
+    free: NDArray[np.bool_]  # cells the lattice search may use: every point between them passes, turning
+    corridor_depth_m: FloatArray  # how far inside the corridor each cell's centre is (-inf: outside)
     possible: NDArray[np.bool_]  # cells with a point that may pass: where a way can be at all
 
 

@@ -86,7 +86,7 @@ class BrainConfig:
     navigation_max_age_s: float = setting(0.2, "vehicle state this old is lost")
     blocked_after_s: float = setting(3.0, "standing this long with nothing reachable ahead: corridor_blocked")
     stall_after_s: float = setting(5.0, "standing this long with a way ahead: stalled, plan afresh (and again)")
-    back_up_m: float = setting(4.0, "a stall or blockage that lasts backs the vehicle up this far along its trail")
+    back_up_m: float = setting(6.0, "a stall or blockage that lasts backs the vehicle up this far along its trail")
     back_up_speed_mps: float = setting(1.0, "backing-up speed")
     fusion: FusionConfig = section(FusionConfig, "the hazard map: window, evidence and how it fades")
     cost: CostConfig = section(CostConfig, "the hazard map's costs: what is lethal, what is caution")

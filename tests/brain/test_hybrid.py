@@ -18,7 +18,16 @@ from brain.planning.checks import PathGate
 from brain.planning.dubins import dubins_points
 from brain.planning.hazards import HazardField
 from brain.planning.hybrid import HybridResult, Terrain, hybrid_search
-from tests.brain.planning.scenes import Map, course_through, densified, polyline_distance, straight_course
+from tests.brain.planning.scenes import (
+    Map,
+    body_distance,
+    body_outline,
+    body_poses,
+    course_through,
+    densified,
+    polyline_distance,
+    straight_course,
+)
 
 CONFIG = PlannerConfig()
 RADIUS_M = CONFIG.turning_radius_m
@@ -32,27 +41,37 @@ def gate_for(grid: Map, course: Course) -> PathGate:
     hazards = HazardField(
         grid.window, grid.hazard, grid.cost, CONFIG.clearance_m, CONFIG.cost_cap, CONFIG.caution_probability
     )
-    nose = CONFIG.vehicle.front_m
     return PathGate(
         hazards,
         LocalCorridor(course.corridor),
         CONFIG.clearance_m,
         CONFIG.corridor_clearance_m,
         CONFIG.check_spacing_m,
-        nose,
+        CONFIG.front_swing,
     )
 
 
 def terrain_for(gate: PathGate) -> Terrain:
     """The search's grid as the planner builds it: free cells with the gate's margins plus the
-    slack of any point in the cell, the corridor mask, footprint cost as the step weight."""
+    slack of any point in the cell, the corridor's depth, footprint cost as the step weight."""
     hazards, window = gate.hazards, gate.hazards.window
     slack = CONFIG.check_spacing_m / 2.0 + window.resolution_m * math.sqrt(2.0) / 2.0
-    inside = gate.corridor.mask(window, CONFIG.corridor_clearance_m + slack)
-    free = inside & (hazards.clearance_m[1:-1, 1:-1] >= CONFIG.clearance_m + slack)
+    depth = gate.corridor.depth(window)
+    free = (depth >= CONFIG.corridor_clearance_m + slack) & (
+        hazards.clearance_m[1:-1, 1:-1] >= CONFIG.clearance_m + slack
+    )
     weight = 1.0 + hazards.footprint_cost.astype(float)
+    half_spacing = gate.spacing_m / 2
     return Terrain(
-        window, hazards.clearance_m, inside, free, weight, gate.clearance_m + gate.spacing_m / 2, gate.spacing_m
+        window,
+        hazards.clearance_m,
+        depth,
+        free,
+        weight,
+        gate.clearance_m + half_spacing,
+        gate.corridor_clearance_m + half_spacing,
+        gate.spacing_m,
+        gate.swing,
     )
 
 
@@ -207,6 +226,12 @@ def test_every_path_stays_in_the_corridor_clear_of_hazards_and_drivable(
     assert course.corridor.distance_to_edge(*densified(points).T).min() >= CONFIG.corridor_clearance_m - 1e-6
     assert polyline_distance(points, grid.lethal_centres()) >= CONFIG.clearance_m - 1e-6
     assert_drivable(points, start)
+    # The whole body, not just the rear axle's tube: its front corners swing out on the turns.
+    # (Poses every 5 cm headed along their chord: within a centimetre of the continuous arc.)
+    poses = body_poses(points, CONFIG.vehicle)
+    assert body_distance(poses, grid.lethal_centres(), CONFIG.vehicle) >= CONFIG.margin_m - 0.01
+    depth = course.corridor.distance_to_edge(*body_outline(poses, CONFIG.vehicle).T)
+    assert np.min(depth, initial=np.inf) >= CONFIG.corridor_margin_m - 0.01
 
 
 def test_the_search_method_is_checked() -> None:

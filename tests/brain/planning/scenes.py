@@ -14,6 +14,7 @@ import numpy as np
 
 from brain.corridor import Course
 from brain.grid import GridWindow
+from brain.vehicle import VehicleGeometry
 from protocol.messages import Path
 from tests.brain.rddf_samples import waypoints_at
 
@@ -102,3 +103,51 @@ def densified(points: np.ndarray, spacing_m: float = 0.05) -> np.ndarray:
         count = max(1, int(np.ceil(np.hypot(*(b - a)) / spacing_m)))
         out.append(a + np.linspace(0.0, 1.0, count + 1)[1:, None] * (b - a))
     return np.vstack(out)
+
+
+def body_poses(points: np.ndarray, vehicle: VehicleGeometry, spacing_m: float = 0.05) -> np.ndarray:
+    """Rear-axle poses (east, north, heading; K x 3) along the polyline every ``spacing_m``,
+    heading along the segment each lies on: the stretch whose whole body the path answers for,
+    from a rear overhang after its start (the vehicle stands there already) to a nose before its
+    end (beyond, the nose check at a stop answers)."""
+    poses = []
+    along = 0.0
+    for a, b in itertools.pairwise(np.asarray(points, dtype=float)):
+        length = float(np.hypot(*(b - a)))
+        if length <= 1e-9:
+            continue
+        heading = float(np.arctan2(b[1] - a[1], b[0] - a[0]))
+        count = max(1, int(np.ceil(length / spacing_m)))
+        for t in np.linspace(0.0, 1.0, count + 1)[:-1]:
+            poses.append((*(a + t * (b - a)), heading, along + t * length))
+        along += length
+    table = np.asarray(poses).reshape(-1, 4)
+    held = (table[:, 3] >= vehicle.rear_overhang_m) & (table[:, 3] <= along - vehicle.front_m)
+    return table[held, :3]
+
+
+def body_distance(poses: np.ndarray, targets: np.ndarray, vehicle: VehicleGeometry) -> float:
+    """Exact least distance from the vehicle's rectangle at any of ``poses`` to any target point."""
+    if len(poses) == 0 or len(targets) == 0:
+        return np.inf
+    best = np.inf
+    for pose in poses:
+        rel = targets - pose[:2]
+        cos, sin = np.cos(pose[2]), np.sin(pose[2])
+        x = rel[:, 0] * cos + rel[:, 1] * sin
+        y = -rel[:, 0] * sin + rel[:, 1] * cos
+        dx = np.maximum(np.maximum(-vehicle.rear_overhang_m - x, x - vehicle.front_m), 0.0)
+        dy = np.maximum(np.abs(y) - vehicle.half_width_m, 0.0)
+        best = min(best, float(np.min(np.hypot(dx, dy))))
+    return best
+
+
+def body_outline(poses: np.ndarray, vehicle: VehicleGeometry, spacing_m: float = 0.05) -> np.ndarray:
+    """Points round the vehicle's rectangle at every pose (M x 2), corners included."""
+    x0, x1, w = -vehicle.rear_overhang_m, vehicle.front_m, vehicle.half_width_m
+    corners = np.array([[x0, -w], [x1, -w], [x1, w], [x0, w], [x0, -w]])
+    outline = densified(corners, spacing_m)
+    cos, sin = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
+    east = poses[:, 0:1] + outline[None, :, 0] * cos - outline[None, :, 1] * sin
+    north = poses[:, 1:2] + outline[None, :, 0] * sin + outline[None, :, 1] * cos
+    return np.column_stack([east.ravel(), north.ravel()])

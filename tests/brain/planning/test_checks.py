@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from brain.planning import PlannerConfig
 from brain.planning.bounds import LocalCorridor
 from brain.planning.checks import PathGate, densify
 from brain.planning.hazards import HazardField
-from tests.brain.planning.scenes import Map, polyline_distance, straight_course
+from brain.planning.swing import FrontSwing
+from tests.brain.planning.scenes import Map, body_distance, body_poses, polyline_distance, straight_course
 
 CLEARANCE = 1.0
 COURSE = straight_course(200.0, half_width_m=6.0)
@@ -18,7 +22,7 @@ COURSE = straight_course(200.0, half_width_m=6.0)
 
 def gate_for(grid: Map, nose_m: float = 1.7) -> PathGate:
     hazards = HazardField(grid.window, grid.hazard, grid.cost, CLEARANCE, 10.0, 0.5)
-    return PathGate(hazards, LocalCorridor(COURSE.corridor), CLEARANCE, 0.6, 0.25, nose_m)
+    return PathGate(hazards, LocalCorridor(COURSE.corridor), CLEARANCE, 0.6, 0.25, FrontSwing(nose_m, 0.6))
 
 
 def test_densify_keeps_vertices_and_spacing() -> None:
@@ -72,3 +76,34 @@ def test_a_passing_path_keeps_the_clearance_exactly(seed: int, vertices: list[tu
     points = np.asarray(vertices)
     if gate_for(grid).check(points).ok:
         assert polyline_distance(points, grid.lethal_centres()) >= CLEARANCE - 1e-9
+
+
+def test_a_full_lock_turn_keeps_its_front_corner_off_what_the_tube_clears() -> None:
+    """A quarter turn left at full lock past a rock just beyond the rear axle's tube: the outer
+    front corner runs 0.46 m outside the tube and would pass within the margin, so the gate
+    refuses the turn; the straight past the same rock is fine."""
+    config = PlannerConfig()
+    radius, vehicle = config.turning_radius_m, config.vehicle
+    centre = np.array([40.0, radius])
+    rock = centre + 3.2 * np.array([math.sin(math.radians(60.0)), -math.cos(math.radians(60.0))])
+    grid = Map.around(45.0, 2.0, 30.0, 20.0).box(rock[0] - 0.1, rock[1] - 0.1, rock[0] + 0.1, rock[1] + 0.1)
+    (cell,) = grid.lethal_centres()
+    hazards = HazardField(
+        grid.window, grid.hazard, grid.cost, config.clearance_m, config.cost_cap, config.caution_probability
+    )
+    gate = PathGate(
+        hazards,
+        LocalCorridor(COURSE.corridor),
+        config.clearance_m,
+        config.corridor_clearance_m,
+        config.check_spacing_m,
+        config.front_swing,
+    )
+    angle = np.linspace(0.0, math.pi / 2.0, 10)
+    turn = np.column_stack([centre[0] + radius * np.sin(angle), centre[1] - radius * np.cos(angle)])
+    tube = config.clearance_m + config.check_spacing_m / 2.0
+    assert polyline_distance(turn, grid.lethal_centres()) >= tube  # the tube and its sampling slack are clear
+    assert body_distance(body_poses(turn, vehicle), np.array([cell]), vehicle) < config.margin_m  # the body is not
+    assert not gate.check(turn, nose=False).ok
+    straight = np.array([[30.0, cell[1] - config.clearance_m - 0.1], [60.0, cell[1] - config.clearance_m - 0.1]])
+    assert gate.check(straight, nose=False).ok

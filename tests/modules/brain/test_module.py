@@ -87,7 +87,7 @@ def test_a_back_up_goes_straight_back_behind_a_vehicle_without_a_trail_and_stops
     cost_map = CostMap(window, 0, hazard, np.zeros(window.shape, np.float32), np.zeros(window.shape, bool))
     facing_north = vehicle_state()._replace(yaw_rad=1.5707963)
     way = brain.way_back(facing_north, cost_map)
-    assert way is not None and way.points[-1][1] == pytest.approx(-4.0, abs=1e-3)
+    assert way is not None and way.points[-1][1] == pytest.approx(-BrainConfig().back_up_m, abs=1e-3)
     row, col = window.cell_of(0.0, -3.0)
     hazard[row, col] = 0.9  # a rock seen 3 m behind
     way = brain.way_back(facing_north, cost_map)
