@@ -3,11 +3,15 @@
 and puts another in its place, while the ESVS process itself keeps running its round and
 heartbeat.
 
-A worker past its time is not hung while it still wants a CPU (a thread in state R) and has
-used less than its hang timeout of CPU since the time being judged began: an overloaded machine
-starves a working worker, and killing it for that only costs a frame and a cold start on top. A
-worker that sleeps or blocks without a result is hung at its timeout; one that spins, once it has
-burnt that much CPU.
+A worker past its time is not hung while it is still working (a thread running or waiting for a
+CPU, state R, or held in the kernel, state D: a page fault waiting for a page, a memory lock) and
+has used less than its hang timeout of CPU since the time being judged began: an overloaded
+machine starves a working worker, and killing it for that only costs a frame and a cold start on
+top (and a thread in D would not even die before the kernel let it go). A worker that sleeps
+without a result is hung at its timeout; one that spins, once it has burnt that much CPU. A
+worker found asleep is first checked for a result that arrived after the pipe was read: one that
+finishes late sends it and goes back to waiting at once, and killing it then would throw the
+finished result away.
 
 Each role keeps a hot spare: a standby worker already started, attached to the frame ring and
 waiting. Replacing a failed worker is one ``Activate`` message to the spare; a new spare is then
@@ -62,17 +66,21 @@ def _main_module() -> list[str]:
 
 
 class Threads(NamedTuple):
-    """What the kernel says of a process's threads: CPU time used, and whether any wants a CPU."""
+    """What the kernel says of a process's threads: CPU time used, and whether any is working
+    (running, waiting for a CPU, or held in the kernel) rather than asleep."""
 
     cpu_ns: int
-    runnable: bool
+    working: bool
+
+
+WORKING_STATES = (b"R", b"D")  # running or runnable; uninterruptible wait in the kernel
 
 
 def threads_of(pid: int) -> Threads:
     """The CPU time of every thread of ``pid`` (``/proc/PID/task/TID/schedstat``) and whether
-    one is running or waiting to (state R). Nothing known (not Linux, or gone): no CPU, not
-    runnable, so no starvation is excused."""
-    cpu_ns, runnable = 0, False
+    one is working (state R or D). Nothing known (not Linux, or gone): no CPU, not working, so
+    no starvation is excused."""
+    cpu_ns, working = 0, False
     try:
         threads = os.listdir(f"/proc/{pid}/task")
     except OSError:
@@ -82,10 +90,10 @@ def threads_of(pid: int) -> Threads:
             with open(f"/proc/{pid}/task/{tid}/schedstat", "rb") as schedstat:
                 cpu_ns += int(schedstat.read().split()[0])
             with open(f"/proc/{pid}/task/{tid}/stat", "rb") as stat:
-                runnable |= stat.read().rpartition(b")")[2].split()[0] == b"R"
+                working |= stat.read().rpartition(b")")[2].split()[0] in WORKING_STATES
         except (OSError, ValueError, IndexError):
             continue
-    return Threads(cpu_ns, runnable)
+    return Threads(cpu_ns, working)
 
 
 class _Proc:
@@ -125,6 +133,15 @@ class _Proc:
         except (EOFError, OSError):
             self.broken = True
         return messages
+
+    def pending(self) -> bool:
+        """Something from the worker is waiting in the pipe (the next ``receive`` gets it)."""
+        if self.broken:
+            return False
+        try:
+            return bool(self.conn.poll())
+        except (EOFError, OSError):
+            return False
 
     def exit_status(self) -> str | None:
         """Why the process is gone, or None while it lives."""
@@ -297,8 +314,12 @@ class Supervised:
             return None
         threads = threads_of(active.pid)
         used = threads.cpu_ns - self.cpu_ns
-        if threads.runnable and used <= self.timeout_ns:
-            return None  # starved, not hung
+        if threads.working and used <= self.timeout_ns:
+            return None  # starved or held up by the kernel, not hung
+        if active.pending():
+            # It answered since the drain and went back to waiting: read after its state, the pipe
+            # shows any result sent before it slept. The next check collects it.
+            return None
         return f"hung: no result {late / 1e6:.0f} ms after {since} ({used / 1e6:.0f} ms of CPU used)"
 
     def restart(self, reason: str) -> None:
