@@ -1,15 +1,12 @@
-"""Backing out of a dead end: the vehicle starts with its nose 1.0 m from a 5 m wide boulder in the
-middle of a 9.8 m corridor. With its 2.29 m turning radius it cannot steer round from there: its
-outer front corner, swung at full lock, sweeps a circle of 3.35 m radius round the turn's centre
-that gets 2.5 m out to the side (the boulder's side) only 3.3 m ahead, past the boulder's face
-2.7 m ahead of the rear axle. It has
-no trail yet, so the brain backs it straight up behind the start (clear on the map, inside the
-corridor), then plans afresh and drives round the rock to the finish: reverse gear, reverse path,
-rear-axle tracking and the recovery, all in the closed loop. The corridor's round end 4.9 m
-behind the start stops that first back-up at about 3.6 m; from there the way round, keeping the
-front corners' swing clear of the rock and the edge, is a full-lock S-bend, so a second back-up
-along the trail it made trying is often needed (52-67 s of driving measured, 32 s for a vehicle
-whose planner ignored the swing and came within 0.02 m of the rock)."""
+"""Backing out of a dead end: the vehicle starts with its nose 1.0 m from a 4 m wide boulder in the
+middle of a 9.8 m corridor. To pass it the rear axle must be 2.75 m off the centre line (half
+the rock, half the vehicle, the margin) before its nose reaches the rock's face; with a 2.29 m
+turning radius that cannot be done in 1 m. It has no trail yet, so the brain backs it straight
+up behind the start (clear on the map, inside the corridor; the corridor's round end 4.9 m
+behind the start stops it at about 3.6 m), then plans afresh and drives round the rock to the
+finish, its front corners' swing kept clear of the rock and the edge: reverse gear, reverse
+path, rear-axle tracking and the recovery, all in the closed loop. (A 5 m rock left a full-lock
+S-bend as the only way round from there, found on some runs only after three back-ups.)"""
 
 from __future__ import annotations
 
@@ -23,11 +20,11 @@ pytestmark = pytest.mark.slow
 
 # 119 m due east at 15 mph; a 16 ft boundary: a corridor 9.8 m wide.
 RDDF = rddf([(34.8650000, -116.8900000), (34.8650000, -116.8887000)], width_ft=16, speed_mph=15)
-# 1 m deep, 5 m across (2.4 m of corridor either side): its near side 1.0 m from the nose (the
-# front is 1.7 m ahead of the rear axle). A 3 m boulder could be swung round at full lock.
+# 1 m deep, 4 m across (2.9 m of corridor either side): its near side 1.0 m from the nose (the
+# front is 1.7 m ahead of the rear axle).
 BOULDER = (
     "obstacle",
-    {"name": "boulder", "shape": "box", "at_m": 3.2, "offset_m": 0.0, "length_m": 1.0, "width_m": 5.0, "height_m": 1.0},
+    {"name": "boulder", "shape": "box", "at_m": 3.2, "offset_m": 0.0, "length_m": 1.0, "width_m": 4.0, "height_m": 1.0},
 )
 
 
