@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 
 from brain.grid import GridWindow
 from brain.planning.dubins import Pose, dubins_points
-from brain.planning.swing import FrontSwing
+from brain.planning.swing import FrontSwing, curvature_at
 
 FloatArray = NDArray[np.float64]
 
@@ -618,13 +618,7 @@ class _Search:
 
     def vertex_swing(self, a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> float:
         """The swing at vertex ``b`` of the polyline a-b-c, its curvature as the gate computes it."""
-        first = math.hypot(b[0] - a[0], b[1] - a[1])
-        second = math.hypot(c[0] - b[0], c[1] - b[1])
-        if first <= 1e-9 or second <= 1e-9:
-            return 0.0
-        turn = math.remainder(math.atan2(c[1] - b[1], c[0] - b[0]) - math.atan2(b[1] - a[1], b[0] - a[0]), math.tau)
-        curvature = 2.0 * math.sin(abs(turn) / 2.0) / ((first + second) / 2.0)
-        return self.swing.of(curvature * _CURVATURE_ROUNDING) + _EPSILON_M
+        return self.swing.of(curvature_at(a, b, c) * _CURVATURE_ROUNDING) + _EPSILON_M
 
     def result(self, node: int, tail: list[tuple[float, float]], reached: bool, expansions: int) -> HybridResult:
         """The published points from the start through ``node`` (and an analytic tail)."""

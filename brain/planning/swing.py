@@ -46,8 +46,11 @@ class FrontSwing:
         return self.front_m**2 * k / (side + np.sqrt(side * side + (self.front_m * k) ** 2))
 
     def of(self, curvature: float) -> float:
-        """`at` for one curvature, as a float (Hybrid A*'s inner loop)."""
-        return float(self.at(curvature))
+        """`at` for one curvature, in float arithmetic (Hybrid A*'s inner loop: numpy's per-call
+        overhead is ten times the formula's)."""
+        k = abs(curvature)
+        side = 1.0 + k * self.half_width_m
+        return self.front_m**2 * k / (side + math.sqrt(side * side + (self.front_m * k) ** 2))
 
     def along(self, points: FloatArray, sample_along_m: FloatArray) -> FloatArray:
         """For samples at ``sample_along_m`` (metres along the polyline ``points``, N x 2), the
@@ -65,6 +68,17 @@ class FrontSwing:
             held = index < end
             np.maximum(out, np.where(held, swing[np.minimum(index, len(swing) - 1)], 0.0), out=out)
         return out
+
+
+def curvature_at(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> float:
+    """The curvature at vertex ``b`` of the polyline a-b-c as `vertex_curvature` computes it, in
+    float arithmetic for one vertex; 0 where a segment has no length."""
+    first = math.hypot(b[0] - a[0], b[1] - a[1])
+    second = math.hypot(c[0] - b[0], c[1] - b[1])
+    if first <= 1e-9 or second <= 1e-9:
+        return 0.0
+    turn = math.remainder(math.atan2(c[1] - b[1], c[0] - b[0]) - math.atan2(b[1] - a[1], b[0] - a[0]), math.tau)
+    return 2.0 * math.sin(abs(turn) / 2.0) / ((first + second) / 2.0)
 
 
 def vertex_curvature(points: FloatArray) -> tuple[FloatArray, FloatArray]:

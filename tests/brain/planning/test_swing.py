@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from brain.planning import PlannerConfig
-from brain.planning.swing import FrontSwing, vertex_curvature
+from brain.planning.swing import FrontSwing, curvature_at, vertex_curvature
 from tests.brain.planning.scenes import body_outline
 
 VEHICLE = PlannerConfig().vehicle
@@ -46,6 +46,21 @@ def test_equal_chords_of_an_arc_give_its_curvature() -> None:
     assert curvature == pytest.approx(np.full(11, 0.25), rel=1e-9)
     repeated = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     assert vertex_curvature(repeated)[1] == pytest.approx([0.0])
+
+
+def test_the_float_forms_for_one_vertex_agree_with_the_array_forms() -> None:
+    """Hybrid A* checks its analytic tail vertex by vertex with `curvature_at` and `of`; the gate
+    checks the published path with `vertex_curvature` and `at`: they must agree exactly."""
+    rng = np.random.default_rng(7)
+    points = np.cumsum(rng.normal(0.0, 0.5, (200, 2)), axis=0)
+    _along, curvature = vertex_curvature(points)
+    one_by_one = [
+        curvature_at(tuple(a), tuple(b), tuple(c))
+        for a, b, c in zip(points[:-2], points[1:-1], points[2:], strict=True)
+    ]
+    assert one_by_one == pytest.approx(curvature.tolist(), rel=1e-12)
+    assert [SWING.of(k) for k in curvature] == pytest.approx(SWING.at(curvature).tolist(), rel=1e-12)
+    assert curvature_at((0.0, 0.0), (0.0, 0.0), (1.0, 0.0)) == 0.0
 
 
 def test_a_sample_takes_the_tightest_turn_within_the_nose_behind_it() -> None:
