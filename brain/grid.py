@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+Cell = TypeVar("Cell", bound=np.generic)  # a layer keeps its dtype when it rolls
 
 
 class Sides(NamedTuple):
@@ -116,7 +118,7 @@ class Crop(NamedTuple):
     cut: Sides
 
 
-def roll_into(values: NDArray, old: GridWindow, new: GridWindow, fill: float) -> NDArray:
+def roll_into(values: NDArray[Cell], old: GridWindow, new: GridWindow, fill: float) -> NDArray[Cell]:
     """``values`` laid out on ``old`` moved onto ``new``: cells both windows cover keep their
     value, cells new to the window get ``fill``."""
     d_row, d_col = old.shift_to(new)

@@ -101,9 +101,11 @@ def build_cost_map(
         raise ValueError(f"layers must have the window's shape {window.shape}")
     log_odds = np.ascontiguousarray(log_odds, dtype=np.float32)
     probability = hazard_probability(log_odds)
-    cost = cv2.LUT(cv2.convertScaleAbs(probability, alpha=256.0), config.probability_lut())
+    levels = cv2.convertScaleAbs(probability, alpha=256.0)
+    cost = np.asarray(cv2.LUT(levels, config.probability_lut()), dtype=np.float32)
     lethal = np.zeros(window.shape, dtype=bool)
-    hazard = cv2.compare(log_odds, config.hazard_log_odds, cv2.CMP_GE)  # 255 on hazards
+    # 255 on hazards (cv2's stubs take no scalar operand; cv2 does)
+    hazard = cv2.compare(log_odds, config.hazard_log_odds, cv2.CMP_GE)  # type: ignore[call-overload]
     x, y, w, h = cv2.boundingRect(hazard)
     if w > 0:
         # Only cells within the inflation radius of a hazard change: transform just their box.

@@ -12,7 +12,7 @@ veto another's detection (each kind of sensor sees different hazards).
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from brain.fusion.raster import Stamp
 from brain.grid import GridWindow, roll_into
@@ -38,7 +38,7 @@ class EvidenceLayers:
         self.lane = roll_into(self.lane, self.window, window, fill=0.0)
         self.window = window
 
-    def decay(self, factors: NDArray[np.float32], lane_factor: float) -> None:
+    def decay(self, factors: ArrayLike, lane_factor: float) -> None:
         """Fade each class by its own factor (one per layer) and the lane layer by ``lane_factor``."""
         self.evidence *= np.asarray(factors, dtype=np.float32).reshape(-1, 1, 1)
         self.lane *= np.float32(lane_factor)

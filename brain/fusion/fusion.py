@@ -334,7 +334,8 @@ class HazardFusion:
         # slanting run: modules/lidar/sweep.py), not the vehicle's x axis.
         centre_x, centre_y = (grown[:, 0] + grown[:, 1]) / 2 - model.x_m, (grown[:, 2] + grown[:, 3]) / 2 - model.y_m
         slope = centre_y / np.maximum(centre_x, 1.0)
-        outlines = slanted_boxes(*grown.T, back_m, half, slope)
+        x_from, x_to, y_from, y_to = grown.T
+        outlines = slanted_boxes(x_from, x_to, y_from, y_to, back_m, half, slope)
         self.stamp.fill(frame.to_enu(outlines), model.hit_log_odds * weight)
         self.layers.add(model.sensor_class, self.stamp)
         self._fused(message.sensor, t_meas_ns, len(rows))

@@ -74,7 +74,7 @@ class SensorModel:
         return self.noise_m + self.noise_per_m2 * range_m * range_m
 
 
-_H_LIDAR = {
+_H_LIDAR: dict[str, Any] = {
     "sensor_class": SensorClass.LIDAR_H,
     "fov_rad": math.pi,
     "max_range_m": 40.0,  # beyond, returns are sparse enough for small objects to slip between rays
@@ -84,7 +84,7 @@ _H_LIDAR = {
     "noise_m": 0.05,
     "noise_per_m2": 1e-4,  # 0.21 m at 40 m: a small box seen on one face (lidar README, Accuracy)
 }
-_V_LIDAR = {
+_V_LIDAR: dict[str, Any] = {
     "sensor_class": SensorClass.LIDAR_V,
     "fov_rad": math.radians(1.0),  # a line: the profile itself says what it covered
     "max_range_m": 24.0,  # the shallowest beam meets flat ground 24 m ahead of the rear axle
@@ -95,7 +95,7 @@ _V_LIDAR = {
     "noise_per_m2": 1.5e-3,
 }
 
-_SWEEP_LIDAR = {
+_SWEEP_LIDAR: dict[str, Any] = {
     "sensor_class": SensorClass.LIDAR_SWEEP,
     "fov_rad": math.radians(60.0),  # the message says what the line covered
     "max_range_m": 45.0,  # the line lies 37 m ahead of the rear axle, up to 43 m at its ends

@@ -139,14 +139,16 @@ def choose(
     gated = 0
     for i in index[np.concatenate([roomy, cramped])]:
         gated += 1
-        profile = swerve(base, *(float(v) for v in params[i, :3]), return_m=float(params[i, 3]))
+        begin_m, offset_m, transition_m, return_m = params[i].tolist()
+        profile = swerve(base, begin_m, offset_m, transition_m, return_m)
         points = np.column_stack(frame.to_enu(s, profile.at(s)[0]))
         if gate.check(points, nose=stops_at_end).ok:
             return Choice(profile, points, s, generated, int(full.sum()), gated)
     # Longest clear stretch first, then as above.
     for i in index[np.lexsort((score, unsure, -clear_upto[index]))][:_MAX_PARTIAL]:
         gated += 1
-        profile = swerve(base, *(float(v) for v in params[i, :3]), return_m=float(params[i, 3]))
+        begin_m, offset_m, transition_m, return_m = params[i].tolist()
+        profile = swerve(base, begin_m, offset_m, transition_m, return_m)
         # Stop a turning radius and a nose short of the conflict: room to turn away towards the
         # way past it, which a vehicle that cannot reverse needs once it stands there.
         keep = int(clear_upto[i])
@@ -296,7 +298,8 @@ def _parameters(
         )
     )
     start = float(s[0])
-    shapes = []  # (begin, length, return) of each swerve shape; every shape goes to every offset
+    # (begin, length, return) of each swerve shape; every shape goes to every offset
+    shapes: list[tuple[float, float, float]] = []
     for length in lengths:
         begins = [start]
         late = conflict_m - config.lead_m - length

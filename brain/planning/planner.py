@@ -35,7 +35,7 @@ import enum
 import functools
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypedDict, Unpack
 
 import cv2
 import numpy as np
@@ -98,6 +98,25 @@ class PlanResult:
     @property
     def slow_mode(self) -> bool:
         return self.path.slow_mode
+
+
+class Counts(TypedDict, total=False):
+    """What the candidate step counted, passed on to whichever step publishes."""
+
+    candidates: int
+    candidates_clear: int
+    gated: int
+
+
+class SearchCounts(Counts, total=False):
+    expansions: int
+
+
+class Figures(SearchCounts, total=False):
+    """PlanResult's figures beyond the path."""
+
+    reached_goal: bool
+    partial: bool
 
 
 @dataclass(frozen=True)
@@ -261,9 +280,9 @@ class _Cycle:
         current = self.planner._current
         s = stations(self.s0, s_end, cfg.point_spacing_m)
         base = None
-        following = current is not None and current.profile is not None
-        if following and abs(float(current.profile.at(self.s0)[0]) - self.d0) <= cfg.max_path_deviation_m:
-            base = current.profile.since(self.s0 - cfg.point_spacing_m)
+        followed = current.profile if current is not None else None
+        if followed is not None and abs(float(followed.at(self.s0)[0]) - self.d0) <= cfg.max_path_deviation_m:
+            base = followed.since(self.s0 - cfg.point_spacing_m)
         fresh = base is None
         if base is None:
             base = self.default_profile()
@@ -283,7 +302,7 @@ class _Cycle:
         braking_m = self.speed**2 / (2.0 * cfg.max_decel_mps2)
         min_length = braking_m + cfg.min_partial_m
         choice = choose(self.frame, self.gate, cfg, base, self.s0, s_end, conflict, self.speed, True, min_length)
-        counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
+        counts: Counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
         if choice.partial and not cfg.allow_partial:
             choice = dataclasses.replace(choice, profile=None)
         elif choice.partial and choice.stations_m is not None:
@@ -330,7 +349,9 @@ class _Cycle:
         self.planner._current = _Current(path_id, polyline=points, reached_goal=reached)
         return self.publish_searched(path_id, points, reached, expansions=expansions, **counts)
 
-    def publish_searched(self, path_id: int, points: FloatArray, reached: bool, **figures: int | bool) -> PlanResult:
+    def publish_searched(
+        self, path_id: int, points: FloatArray, reached: bool, **figures: Unpack[SearchCounts]
+    ) -> PlanResult:
         """A searched path ends in a stop where the search did. One that gets through is driven at
         up to the search speed; one that does not, in slow mode (RASCAL's 1 m/s) to its stop."""
         return self.publish(
@@ -377,7 +398,7 @@ class _Cycle:
             return None
         path_id = planner._new_id()
         planner._current = _Current(path_id, profile=choice.profile)
-        counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
+        counts: Counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
         return self.publish(path_id, PlanMode.REPLAN, choice.points, choice.stations_m, slow=False, **counts)
 
     def default_profile(self) -> LateralProfile:
@@ -614,7 +635,7 @@ class _Cycle:
         slow: bool,
         stop_at_end: bool = False,
         top_speed_mps: float = math.inf,
-        **figures: int | bool,
+        **figures: Unpack[Figures],
     ) -> PlanResult:
         """The Path for ``points`` with speeds under every cap and ``top_speed_mps``; it ends at
         speed 0 in slow mode and when ``stop_at_end``."""
@@ -694,7 +715,7 @@ class _Cycle:
         planned = float(last[k, 2] + t[k] * (last[k + 1, 2] - last[k, 2]))
         return max(start, min(planned, self.speed + cfg.speed_lead_mps))
 
-    def stop(self, **figures: int | bool) -> PlanResult:
+    def stop(self, **figures: Unpack[Figures]) -> PlanResult:
         """Stand still where the vehicle is: a new one-point path at speed 0, slow mode."""
         path_id = self.planner._new_id()
         self.planner._current = None

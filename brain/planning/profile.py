@@ -20,7 +20,7 @@ def blend(
 ) -> tuple[FloatArray, FloatArray]:
     """Offset and slope at ``x`` metres into a quintic blend (clamped to [0, length]); broadcasts."""
     length = np.asarray(length, dtype=float)
-    x = np.clip(np.asarray(x, dtype=float), 0.0, length)
+    x = np.asarray(np.clip(np.asarray(x, dtype=float), 0.0, length), dtype=float)
     coefficients = blend_coefficients(length, d0, m0, d1)
     return _poly(coefficients, x), _poly_slope(coefficients, x)
 
@@ -28,7 +28,7 @@ def blend(
 def blend_value(x: ArrayLike, length: ArrayLike, d0: ArrayLike, m0: ArrayLike, d1: ArrayLike) -> FloatArray:
     """Offset only at ``x`` metres into a blend (clamped to [0, length]); broadcasts."""
     length = np.asarray(length, dtype=float)
-    x = np.minimum(np.maximum(np.asarray(x, dtype=float), 0.0), length)
+    x = np.asarray(np.minimum(np.maximum(np.asarray(x, dtype=float), 0.0), length), dtype=float)
     return _poly(blend_coefficients(length, d0, m0, d1), x)
 
 

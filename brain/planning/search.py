@@ -214,4 +214,4 @@ def _runs_free(free: NDArray[np.bool_], dr: int, dc: int, stride: int) -> NDArra
 def _components(free: NDArray[np.bool_]) -> NDArray[np.int32]:
     """8-connected labels of the free nodes (0 for blocked ones)."""
     _, labels = cv2.connectedComponents(free.astype(np.uint8), connectivity=8)
-    return labels
+    return np.asarray(labels, dtype=np.int32)
