@@ -3,30 +3,52 @@
 Every module declares a frozen dataclass; each field has a default and a ``help`` metadata
 string. A field whose type is itself such a dataclass is a section (the brain's ``planner``,
 ``fusion`` and ``cost``): a TOML sub-table, or dotted keys (``--set planner.margin_m=0.2``).
-Loading rejects unknown keys and wrong types by name, a section's own checks (``__post_init__``)
-report as configuration errors too, and ``--print-config`` is generated from the same declaration,
-sections included, so it cannot drift.
+Loading rejects unknown keys, wrong types, missing required fields and values outside a field's
+declared range by name, a section's own checks (``__post_init__``) report as configuration errors
+too, and ``--print-config`` is generated from the same declaration, sections included, so it cannot
+drift. Hand-written files (deployments, scenarios) declare their tables the same way and are
+checked by the same code, so a mistake reads the same wherever it is made: ``where.key: problem``
+(their loaders put the file's name in front).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
+import math
 import types
 import typing
 from typing import Any, TypeGuard, TypeVar
 
 C = TypeVar("C")
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
     """A configuration value or key that cannot be used; the message names it."""
 
 
-def setting(default: Any, help: str) -> Any:
-    """A config field with its default and a one-line description (units in the field name)."""
+# A ``within`` for numbers that have no bounds but must be finite (no nan or inf from a file).
+FINITE = (-math.inf, math.inf)
+
+
+def setting(default: Any, help: str, within: tuple[float, float] | None = None) -> Any:
+    """A config field with its default and a one-line description (units in the field name);
+    ``within``: the inclusive range a given number must be in (finite, too)."""
+    metadata = _metadata(help, within)
     if isinstance(default, (list, dict, set)):
-        return dataclasses.field(default_factory=lambda: type(default)(default), metadata={"help": help})
-    return dataclasses.field(default=default, metadata={"help": help})
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def required(help: str, within: tuple[float, float] | None = None) -> Any:
+    """A config field with no default: loading fails naming it when it is not given (its class
+    needs ``kw_only=True`` when fields with defaults come before it)."""
+    return dataclasses.field(metadata=_metadata(help, within))
+
+
+def _metadata(help: str, within: tuple[float, float] | None) -> dict[str, Any]:
+    return {"help": help} if within is None else {"help": help, "within": within}
 
 
 def section(cls: type, help: str) -> Any:
@@ -47,15 +69,38 @@ def build_config(cls: type[C], values: dict[str, Any], where: str = "config") ->
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(fields))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
+        raise ConfigError(f"{_key(where, unknown[0])}: unknown key; known: {sorted(fields)}")
+    for f in fields.values():
+        if f.name not in values and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(f"{_key(where, f.name)}: missing")
     hints = typing.get_type_hints(cls)
-    checked = {name: _coerce(hints[name], value, f"{where}.{name}") for name, value in values.items()}
+    checked = {}
+    for name, value in values.items():
+        checked[name] = _coerce(hints[name], value, _key(where, name))
+        if "within" in fields[name].metadata and value is not None:
+            low, high = fields[name].metadata["within"]
+            check_range(value, low, high, _key(where, name))  # the value as written: "got 60", not 60.0
     try:
         return cls(**checked)
     except ConfigError:
         raise
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
+
+
+def check_range(value: float, low: float, high: float, where: str) -> None:
+    """``value`` finite and in ``low..high``, else a ConfigError naming ``where``; for a field's
+    declared ``within`` and for ranges known only while loading (a place along the course)."""
+    if not (math.isfinite(value) and low <= value <= high):
+        bounds = f">= {low:g}" if high == math.inf else f"<= {high:g}" if low == -math.inf else f"{low:g}..{high:g}"
+        raise ConfigError(f"{where}: expected {'a finite number' if (low, high) == FINITE else bounds}, got {value!r}")
+
+
+def given(value: T | None, where: str) -> T:
+    """An optional field that this case requires (a cylinder's radius): a ConfigError if it is absent."""
+    if value is None:
+        raise ConfigError(f"{where}: missing")
+    return value
 
 
 def parse_assignments(cls: type, assignments: list[str], where: str = "--set") -> dict[str, Any]:
@@ -149,6 +194,11 @@ def nest(path: str, values: dict[str, Any]) -> dict[str, Any]:
     return values
 
 
+def _key(where: str, name: str) -> str:
+    """``name`` under ``where``, dotted; an empty ``where`` is a document's top level."""
+    return f"{where}.{name}" if where else name
+
+
 def _sections(cls: type) -> list[str]:
     return sorted(name for name, tp in typing.get_type_hints(cls).items() if is_section(tp))
 
@@ -167,13 +217,11 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+# What a value of each plain type is called in an error ("expected an integer, got 'a'").
+_TYPE_WORDS = {int: "an integer", str: "a string", bool: "true or false"}
+
+
 def _coerce(tp: Any, value: Any, where: str) -> Any:
-    if is_section(tp):
-        if isinstance(value, tp):
-            return value
-        if isinstance(value, dict):
-            return build_config(tp, value, where)
-        raise ConfigError(f"{where}: expected a table of {tp.__name__} settings, got {value!r}")
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         options = typing.get_args(tp)
@@ -181,18 +229,34 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             return None
         tp = next(option for option in options if option is not type(None))
         origin = typing.get_origin(tp)
+    if is_section(tp):
+        if isinstance(value, tp):
+            return value
+        if isinstance(value, dict):
+            return build_config(tp, value, where)
+        raise ConfigError(f"{where}: expected a table of {tp.__name__} settings, got {value!r}")
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        try:
+            return tp(value)
+        except ValueError:
+            raise ConfigError(f"{where}: {value!r} is not one of {[e.value for e in tp]}") from None
     if tp is float and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
-    if tp in (int, str, bool):
+    if tp in _TYPE_WORDS:
         if type(value) is tp:
             return value
-        raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
+        raise ConfigError(f"{where}: expected {_TYPE_WORDS[tp]}, got {value!r}")
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
         (item, *_rest) = typing.get_args(tp) or (Any,)
         coerced = [value_ if item is Any else _coerce(item, value_, f"{where}[{i}]") for i, value_ in enumerate(value)]
         return tuple(coerced) if origin is tuple else coerced
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a table, got {value!r}")
+        item = typing.get_args(tp)[1]
+        return {k: v if item is Any else _coerce(item, v, _key(where, k)) for k, v in value.items()}
     if tp is float:
         raise ConfigError(f"{where}: expected a number, got {value!r}")
     return value

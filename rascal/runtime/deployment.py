@@ -58,9 +58,19 @@ from urllib.parse import parse_qsl, urlencode, urlsplit
 from protocol import channels
 from protocol.authority import GOVERNED_CHANNELS, OPERATOR_SOURCE_ID
 from protocol.faults import FAULTS_ENV, FaultConfigError, FaultRule, format_rules, rule_from_mapping
-from rascal.runtime.config import ConfigError, build_config, flatten_values, merge_values, nest, shared_sections
+from rascal.runtime.config import (
+    FINITE,
+    ConfigError,
+    build_config,
+    flatten_values,
+    given,
+    merge_values,
+    nest,
+    required,
+    setting,
+    shared_sections,
+)
 from rascal.runtime.launch import module_class
-from rascal.runtime.toml_reader import TomlReader
 
 DEFAULT_DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "localhost.toml"
 SHARED_SETTINGS = ("scenario", "course", "origin")
@@ -190,6 +200,44 @@ class Deployment:
         raise KeyError(label)
 
 
+@dataclass(frozen=True, kw_only=True)
+class DeploymentTable:
+    name: str | None = setting(None, "the deployment's name (default: the file's)")
+    bus: str = required("every module's bus URL")
+    key_file: str = setting("", "empty: $RASCAL_KEY_FILE or the per-user key")
+    scenario: str = setting("", "simulated modules' world (relative to this file)")
+    course: str = setting("", "the RDDF every ENU module plans and navigates in")
+    origin: str = setting("", "lat,lon[,alt]; empty: the course's first waypoint")
+
+
+@dataclass(frozen=True)
+class HostTable:
+    address: str = setting("", "this host's LAN address: its iface= on an off-host bus")
+
+
+@dataclass(frozen=True)
+class ModuleTable:
+    module: str | None = setting(None, "package under modules/ (default: the label)")
+    host: str | None = setting(None, "required when hosts are declared")
+    source_id: int | None = setting(None, "default: the module's own", within=(1, 0xFFFF))
+    nice: int = setting(0, "scheduling: higher runs later", within=(0, 19))
+    heartbeat_timeout_s: float = setting(3.0, "the supervisor restarts a module this quiet", within=FINITE)
+    cpu_budget_pct: float | None = setting(None, "% of one core, children included (default: per module)")
+    set: dict[str, Any] = setting({}, "config overrides, as --set KEY=VALUE")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeploymentFile:
+    """A deployment file's tables, checked by rascal.runtime.config as module settings are."""
+
+    deployment: DeploymentTable = required("the bus and the shared settings")
+    vehicle: dict[str, Any] = setting({}, "brain/vehicle.py's VehicleGeometry, for every module holding one")
+    hosts: dict[str, HostTable] = setting({}, "without hosts every module is local")
+    modules: dict[str, ModuleTable] = required("one table per process; the key is its label")
+    faults: Any = setting([], "link faults on receivers (protocol/faults.py), a table or [[faults]]")
+    authority: dict[str, list[Any]] = setting({}, "who may publish on each governed channel")
+
+
 def load_deployment(path: str | Path = DEFAULT_DEPLOYMENT) -> Deployment:
     path = Path(path)
     try:
@@ -198,97 +246,82 @@ def load_deployment(path: str | Path = DEFAULT_DEPLOYMENT) -> Deployment:
         raise DeploymentError(f"{path}: deployment file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise DeploymentError(f"{path}: not valid TOML: {exc}") from exc
-    return _Parser(path).deployment(doc)
+    try:
+        return _Parser(path).deployment(build_config(DeploymentFile, doc, ""))
+    except (ConfigError, FaultConfigError) as exc:
+        raise DeploymentError(f"{path}: {exc}") from None
 
 
-class _Parser(TomlReader):
+class _Parser:
+    """What the declaration cannot say: defaults and checks that depend on other tables."""
+
     def __init__(self, path: Path) -> None:
-        super().__init__(path, DeploymentError)
+        self.path = path
         self.base = path.resolve().parent
 
-    def deployment(self, doc: dict[str, Any]) -> Deployment:
-        self.keys(doc, "", {"deployment", "hosts", "modules", "faults", "authority", *SHARED_TABLES})
-        head = self.table(doc, "deployment", required=True)
-        self.keys(head, "deployment", {"name", "bus", "key_file", "scenario", "course", "origin"})
-        hosts_table = self.table(doc, "hosts", required=False)
-        hosts: dict[str, str] = {}
-        for name, table in hosts_table.items():
-            if not isinstance(table, dict):
-                raise self.fail(f"hosts.{name}", "expected a table")
-            self.keys(table, f"hosts.{name}", {"address"})
-            hosts[name] = self.string(table, f"hosts.{name}", "address", default="")
+    def deployment(self, file: DeploymentFile) -> Deployment:
+        head = file.deployment
+        hosts = {name: table.address for name, table in file.hosts.items()}
         explicit_hosts = bool(hosts)
         if not explicit_hosts:
             hosts = {LOCALHOST: "127.0.0.1"}
         shared = {
-            "scenario": self.path_or_none(head, "scenario"),
-            "course": self.path_or_none(head, "course"),
-            "origin": self.string(head, "deployment", "origin", default=""),
+            "scenario": self.path_or_none(head.scenario, "scenario"),
+            "course": self.path_or_none(head.course, "course"),
+            "origin": head.origin,
         }
-        self.shared_tables = {name: self.table(doc, name, required=False) for name in SHARED_TABLES}
+        self.shared_tables = {name: getattr(file, name) for name in SHARED_TABLES}
         self.checked_tables: set[str] = set()
-        modules_table = self.table(doc, "modules", required=True)
-        if not modules_table:
-            raise self.fail("modules", "a deployment needs at least one module")
-        specs = [self.module(label, table, hosts, explicit_hosts, shared) for label, table in modules_table.items()]
+        if not file.modules:
+            raise ConfigError("modules: a deployment needs at least one module")
+        specs = [self.module(label, table, hosts, explicit_hosts, shared) for label, table in file.modules.items()]
         seen: dict[int, str] = {}
         for spec in specs:
             if spec.source_id in seen:
-                raise self.fail(
-                    f"modules.{spec.label}.source_id", f"{spec.source_id} is already used by {seen[spec.source_id]}"
+                raise ConfigError(
+                    f"modules.{spec.label}.source_id: {spec.source_id} is already used by {seen[spec.source_id]}"
                 )
             seen[spec.source_id] = spec.label
-        specs = self.faults(doc.get("faults", []), specs, hosts)
-        key_file = self.path_or_none(head, "key_file")
+        specs = self.faults(file.faults, specs, hosts)
         return Deployment(
             self.path,
-            self.string(head, "deployment", "name", default=self.path.stem),
-            self.string(head, "deployment", "bus"),
-            key_file,
+            self.path.stem if head.name is None else head.name,
+            head.bus,
+            self.path_or_none(head.key_file, "key_file"),
             shared["scenario"],  # type: ignore[arg-type]
             shared["course"],  # type: ignore[arg-type]
             shared["origin"],  # type: ignore[arg-type]
             hosts,
             tuple(specs),
-            self.authority(self.table(doc, "authority", required=False), specs, hosts),
+            self.authority(file.authority, specs, hosts),
         )
 
     def check_shared(self, name: str, section_class: type) -> None:
         """A shared table's mistakes are named once, as the table's, not as each module's."""
-        if name in self.checked_tables:
-            return
-        try:
-            build_config(section_class, self.shared_tables[name], f"{self.path}: {name}")
-        except ConfigError as exc:
-            raise DeploymentError(str(exc)) from None
-        self.checked_tables.add(name)
+        if name not in self.checked_tables:
+            build_config(section_class, self.shared_tables[name], name)
+            self.checked_tables.add(name)
 
     def module(
-        self, label: str, table: Any, hosts: dict[str, str], explicit_hosts: bool, shared: dict[str, Any]
+        self, label: str, table: ModuleTable, hosts: dict[str, str], explicit_hosts: bool, shared: dict[str, Any]
     ) -> ModuleSpec:
         where = f"modules.{label}"
         if SAFE_NAME.fullmatch(label) is None:
             # A label names the module's log file in the run directory, and its systemd unit.
-            raise self.fail("modules", f"{label!r} cannot be a module label ({SAFE_NAME_RULE})")
-        if not isinstance(table, dict):
-            raise self.fail(where, "expected a table")
-        self.keys(table, where, {"module", "host", "source_id", "nice", "heartbeat_timeout_s", "cpu_budget_pct", "set"})
-        name = self.string(table, where, "module", default=label)
+            raise ConfigError(f"modules: {label!r} cannot be a module label ({SAFE_NAME_RULE})")
+        name = label if table.module is None else table.module
         try:
             cls = module_class(name)
         except SystemExit as exc:
-            raise self.fail(f"{where}.module", str(exc)) from None
+            raise ConfigError(f"{where}.module: {exc}") from None
         if explicit_hosts:
-            host = self.string(table, where, "host")
+            host = given(table.host, f"{where}.host")
             if host not in hosts:
-                raise self.fail(f"{where}.host", f"{host!r} is not declared under [hosts]: {sorted(hosts)}")
+                raise ConfigError(f"{where}.host: {host!r} is not declared under [hosts]: {sorted(hosts)}")
         else:
-            host = self.string(table, where, "host", default=LOCALHOST)
+            host = LOCALHOST if table.host is None else table.host
             if host != LOCALHOST:
-                raise self.fail(f"{where}.host", f"{host!r} is not declared: add a [hosts.{host}] table")
-        overrides = table.get("set", {})
-        if not isinstance(overrides, dict):
-            raise self.fail(f"{where}.set", "expected a table of KEY = value")
+                raise ConfigError(f"{where}.host: {host!r} is not declared: add a [hosts.{host}] table")
         config_fields = {f.name for f in dataclasses.fields(cls.Config)}
         values = {k: shared[k] for k in SHARED_SETTINGS if k in config_fields and shared[k] not in (None, "")}
         values = {k: str(v) for k, v in values.items()}
@@ -296,41 +329,29 @@ class _Parser(TomlReader):
             for path, section_class in shared_sections(cls.Config, table_name).items():
                 self.check_shared(table_name, section_class)
                 values = merge_values(values, nest(path, table_values))
-        values = merge_values(values, dict(overrides))
-        try:
-            build_config(cls.Config, values, f"{self.path}: {where}.set")
-        except ConfigError as exc:
-            raise DeploymentError(str(exc)) from None
+        values = merge_values(values, table.set)
+        build_config(cls.Config, values, f"{where}.set")
         settings = {key: _setting_text(value) for key, value in flatten_values(values).items()}
-        nice = self.integer(table, where, "nice", default=0)
-        if not 0 <= nice <= 19:
-            raise self.fail(f"{where}.nice", f"expected 0..19, got {nice}")
-        timeout = self.number(table, where, "heartbeat_timeout_s", default=3.0)
-        if timeout < 1.5:
-            raise self.fail(f"{where}.heartbeat_timeout_s", "must exceed the 1 s heartbeat period (>= 1.5)")
-        source_id = self.integer(table, where, "source_id", default=cls.default_source_id)
-        if not 1 <= source_id <= 0xFFFF:
-            raise self.fail(f"{where}.source_id", f"expected 1..65535, got {source_id}")
-        budget = None
-        if "cpu_budget_pct" in table:
-            budget = self.number(table, where, "cpu_budget_pct", default=0.0)
-            if not 0 < budget <= 1000:
-                raise self.fail(f"{where}.cpu_budget_pct", f"expected a share of one core in (0, 1000] %, got {budget}")
-        return ModuleSpec(label, name, host, source_id, nice, timeout, settings, cpu_budget=budget)
+        if table.heartbeat_timeout_s < 1.5:
+            raise ConfigError(f"{where}.heartbeat_timeout_s: must exceed the 1 s heartbeat period (>= 1.5)")
+        budget = table.cpu_budget_pct
+        if budget is not None and not 0 < budget <= 1000:
+            raise ConfigError(f"{where}.cpu_budget_pct: expected a share of one core in (0, 1000] %, got {budget}")
+        source_id = cls.default_source_id if table.source_id is None else table.source_id
+        return ModuleSpec(
+            label, name, host, source_id, table.nice, table.heartbeat_timeout_s, settings, cpu_budget=budget
+        )
 
     def faults(self, value: Any, specs: list[ModuleSpec], hosts: dict[str, str]) -> list[ModuleSpec]:
         """Give each module the ``[[faults]]`` rules whose receivers include it."""
         tables = [value] if isinstance(value, dict) else value
         if not isinstance(tables, list) or not all(isinstance(table, dict) for table in tables):
-            raise self.fail("faults", "expected a table or an array of tables ([[faults]])")
+            raise ConfigError("faults: expected a table or an array of tables ([[faults]])")
         by_label = {spec.label: spec for spec in specs}
         rules: dict[str, list[FaultRule]] = {spec.label: [] for spec in specs}
         for index, table in enumerate(tables):
             where = f"faults[{index}]"
-            try:
-                rule = rule_from_mapping({k: v for k, v in table.items() if k not in FAULT_SELECTORS}, where)
-            except FaultConfigError as exc:
-                raise DeploymentError(f"{self.path}: {exc}") from None
+            rule = rule_from_mapping({k: v for k, v in table.items() if k not in FAULT_SELECTORS}, where)
             receivers = self.names(table, where, "modules", by_label) or list(by_label)
             to_hosts = self.names(table, where, "to_hosts", hosts)
             if to_hosts:
@@ -341,7 +362,7 @@ class _Parser(TomlReader):
                 senders = {by_label[label].source_id for label in from_modules}
                 senders |= {spec.source_id for spec in specs if spec.host in from_hosts}
                 if not senders:
-                    raise self.fail(f"{where}.from_hosts", f"no modules run on {from_hosts}")
+                    raise ConfigError(f"{where}.from_hosts: no modules run on {from_hosts}")
                 rule = dataclasses.replace(rule, sources=tuple(sorted(senders | set(rule.sources))))
             for label in receivers:
                 seed = rule.seed * 0x10000 + by_label[label].source_id
@@ -355,7 +376,7 @@ class _Parser(TomlReader):
         the channel's default."""
         unknown = sorted(set(table) - set(GOVERNED_CHANNELS))
         if unknown:
-            raise self.fail(f"authority.{unknown[0]}", f"not a governed channel; governed: {list(GOVERNED_CHANNELS)}")
+            raise ConfigError(f"authority.{unknown[0]}: not a governed channel; governed: {list(GOVERNED_CHANNELS)}")
         by_label = {spec.label: spec.source_id for spec in specs}
         words = {
             OPERATOR: (OPERATOR_SOURCE_ID,),
@@ -374,10 +395,7 @@ class _Parser(TomlReader):
                         or [module_class(name).default_source_id]
                     )
             else:
-                names = table[channel]
-                if not isinstance(names, list):
-                    raise self.fail(f"authority.{channel}", f"expected a list of module labels, got {names!r}")
-                for name in names:
+                for name in table[channel]:
                     ids += self.publisher(name, channel, by_label, words)
             resolved[channel] = tuple(sorted(set(ids)))
         return resolved
@@ -391,27 +409,26 @@ class _Parser(TomlReader):
             return words[name]
         if isinstance(name, str) and name in by_label:
             return (by_label[name],)
-        raise self.fail(
-            f"authority.{channel}",
-            f"{name!r} is no module label {sorted(by_label)}, {OPERATOR!r}, {SUPERVISOR!r} or source id 1..65535",
+        raise ConfigError(
+            f"authority.{channel}: {name!r} is no module label {sorted(by_label)}, {OPERATOR!r}, {SUPERVISOR!r}"
+            " or source id 1..65535"
         )
 
     def names(self, table: dict[str, Any], where: str, key: str, known: dict[str, Any]) -> list[str]:
         value = table.get(key, [])
         if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
-            raise self.fail(f"{where}.{key}", f"expected a list of names, got {value!r}")
+            raise ConfigError(f"{where}.{key}: expected a list of names, got {value!r}")
         for name in value:
             if name not in known:
-                raise self.fail(f"{where}.{key}", f"{name!r} is not declared: {sorted(known)}")
+                raise ConfigError(f"{where}.{key}: {name!r} is not declared: {sorted(known)}")
         return value
 
-    def path_or_none(self, head: dict[str, Any], key: str) -> Path | None:
-        text = self.string(head, "deployment", key, default="")
+    def path_or_none(self, text: str, key: str) -> Path | None:
         if not text:
             return None
         resolved = (self.base / text).resolve()
         if not resolved.exists():
-            raise self.fail(f"deployment.{key}", f"{resolved} does not exist")
+            raise ConfigError(f"deployment.{key}: {resolved} does not exist")
         return resolved
 
 

@@ -51,7 +51,7 @@ def test_a_modules_own_setting_overrides_the_table(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("vehicle", "message"),
     [
-        ("widht_m = 1.4", r"deploy\.toml: vehicle: unknown key\(s\) \['widht_m'\]"),
+        ("widht_m = 1.4", r"deploy\.toml: vehicle\.widht_m: unknown key"),
         ("rear_overhang_m = 3.0", r"deploy\.toml: vehicle: vehicle\.rear_overhang_m: must be shorter than length_m"),
         ('width_m = "wide"', r"deploy\.toml: vehicle\.width_m: expected a number"),
     ],

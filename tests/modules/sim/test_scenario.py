@@ -63,7 +63,10 @@ def write(tmp_path: Path, body: str) -> Path:
         ("[colours]\nsky = 1\n", r"bad\.toml: colours: unknown key"),
         ("[[obstacle]]\nshape = 'cone'\nat_m = 10.0\nheight_m = 1.0\n", r"obstacle\[0\]\.shape: 'cone' is not one of"),
         ("[[obstacle]]\nshape = 'cylinder'\nat_m = 10.0\nheight_m = 1.0\n", r"obstacle\[0\]\.radius_m: missing"),
-        ("[[obstacle]]\nshape = 'cylinder'\nat_m = 10.0\nheight_m = 1.0\nradius_m = -1\n", r"radius_m: -1"),
+        (
+            "[[obstacle]]\nshape = 'cylinder'\nat_m = 10.0\nheight_m = 1.0\nradius_m = -1\n",
+            r"radius_m: expected 0\.02\.\.20, got -1",
+        ),
         ("[[obstacle]]\nshape = 'cylinder'\nat_m = 99999.0\nheight_m = 1.0\nradius_m = 1\n", r"obstacle\[0\]\.at_m"),
         (
             "[[obstacle]]\nshape = 'cylinder'\nat_m = 10.0\noffset_m = 40.0\nheight_m = 1.0\nradius_m = 1\n",

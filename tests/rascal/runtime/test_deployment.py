@@ -72,7 +72,7 @@ def test_hosts_shared_settings_and_overrides(tmp_path: Path) -> None:
         (lambda t: t.replace('host = "front"\n', ""), r"modules\.ins\.host: missing"),
         (lambda t: t.replace("nice = 5", "nice = 40"), r"modules\.ins\.nice: expected 0\.\.19"),
         (lambda t: t.replace("nice = 5", 'nice = "low"'), r"modules\.ins\.nice: expected an integer"),
-        (lambda t: t.replace('filter = "ukf"', "filters = 2"), r"modules\.ins\.set: unknown key"),
+        (lambda t: t.replace('filter = "ukf"', "filters = 2"), r"modules\.ins\.set\.filters: unknown key"),
         (
             lambda t: t.replace('[modules.health]\nhost = "back"', '[modules.health]\nhost = "back"\nsource_id = 11'),
             r"modules\.health\.source_id: 11 is already used by ins",
