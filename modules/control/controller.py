@@ -1,4 +1,4 @@
-"""The vehicle controller without any I/O: a pose and a path in, an actuator command out.
+"""The vehicle controller without any I/O: the vehicle's motion and a path in, an actuator command out.
 
 It joins RASCAL's three parts (II.C): the path interface (``path_tracking``), heading control
 (``steering``: Stanley/Hoffmann or RASCAL's PD) and speed control (``speed``: PI), and applies
@@ -13,8 +13,9 @@ import enum
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
+from brain.pose import Pose, PoseLike
 from brain.vehicle import VehicleGeometry
 from modules.control.corridor_guard import CorridorGuard, EdgeVerdict
 from modules.control.limits import SteeringLimits
@@ -38,29 +39,38 @@ class Mode(enum.Enum):
     CORRIDOR = "corridor"  # on this steering the footprint would cross the corridor's edge
 
 
-class Pose(NamedTuple):
-    """What the controller needs of the navigation solution (rear axle centre, ENU)."""
+class NavState(PoseLike, Protocol):
+    """What control reads of a navigation solution (``protocol.messages.VehicleState`` fits)."""
 
-    east_m: float
-    north_m: float
-    yaw_rad: float
-    speed_mps: float
+    @property
+    def speed_mps(self) -> float: ...
+
+    @property
+    def yaw_rate_radps(self) -> float: ...
+
+
+class Motion(NamedTuple):
+    """What the controller needs of the navigation solution: the rear axle's pose and how it moves."""
+
+    pose: Pose
+    speed_mps: float  # signed: along the body's x axis, negative backwards
     yaw_rate_radps: float = 0.0
 
-    def ahead(self, dt_s: float) -> Pose:
-        """This pose dead-reckoned ``dt_s`` on at its speed (signed: along the body's x axis) and
-        yaw rate. A navigation solution is tens of milliseconds old when control acts on it; at
-        2 m/s, 60 ms is 0.12 m, as much as the corridor margin."""
-        if dt_s <= 0.0:
-            return self
-        half_turn = 0.5 * self.yaw_rate_radps * dt_s
-        chord = self.speed_mps * dt_s * (math.sin(half_turn) / half_turn if half_turn else 1.0)
-        heading = self.yaw_rad + half_turn
-        return self._replace(
-            east_m=self.east_m + chord * math.cos(heading),
-            north_m=self.north_m + chord * math.sin(heading),
-            yaw_rad=wrap_angle(self.yaw_rad + 2.0 * half_turn),
-        )
+    @classmethod
+    def of(cls, state: NavState, age_s: float = 0.0) -> Motion:
+        """``state`` dead-reckoned ``age_s`` on at its speed and yaw rate, along their arc. A
+        navigation solution is tens of milliseconds old when control acts on it; at 2 m/s, 60 ms
+        is 0.12 m, as much as the corridor margin."""
+        east, north, yaw = state.east_m, state.north_m, state.yaw_rad
+        speed, yaw_rate = state.speed_mps, state.yaw_rate_radps
+        if age_s > 0.0:
+            half_turn = 0.5 * yaw_rate * age_s
+            chord = speed * age_s * (math.sin(half_turn) / half_turn if half_turn else 1.0)
+            heading = yaw + half_turn
+            east += chord * math.cos(heading)
+            north += chord * math.sin(heading)
+            yaw = wrap_angle(yaw + 2.0 * half_turn)
+        return cls(Pose(east, north, yaw), speed, yaw_rate)
 
 
 class Output(NamedTuple):
@@ -167,13 +177,14 @@ class VehicleController:
         self._idle_s += dt_s
         return Output(0.0, 1.0, self.steering_rad, reason, mode, math.nan, math.nan, 0.0, -self._last_speed_mps)
 
-    def drive(self, pose: Pose, dt_s: float) -> Output:
+    def drive(self, motion: Motion, dt_s: float) -> Output:
         if not dt_s > 0.0:
             raise ValueError(f"dt_s must be positive, got {dt_s!r}")
         if self.tracker.path is None:
             raise RuntimeError("drive() before set_path()")
         s = self.settings
-        speed = max(0.0, pose.speed_mps)
+        pose = motion.pose
+        speed = max(0.0, motion.speed_mps)
         self._last_speed_mps = speed
         travelled = speed * (dt_s + self._idle_s) + 1.0
         self._idle_s = 0.0
@@ -194,7 +205,7 @@ class VehicleController:
         if s.law == "stanley":
             heading_error = wrap_angle(where.heading_rad - pose.yaw_rad)
             target = stanley_steering(
-                heading_error, where.cross_track_m, speed, s.stanley, pose.yaw_rate_radps, where.curvature_1pm, gain
+                heading_error, where.cross_track_m, speed, s.stanley, motion.yaw_rate_radps, where.curvature_1pm, gain
             )
         else:
             look_east, look_north = self.tracker.lookahead_point(where, s.pd.lookahead_m(speed))

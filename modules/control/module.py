@@ -17,7 +17,7 @@ from pathlib import Path as FilePath
 
 from brain.course_config import load_course
 from brain.vehicle import VehicleGeometry
-from modules.control.controller import ControllerSettings, Mode, Output, Pose
+from modules.control.controller import ControllerSettings, Mode, Motion, Output
 from modules.control.corridor_guard import CorridorGuard, GuardSettings
 from modules.control.path_tracking import DEFAULT_HEADING_SMOOTHING_M, PathError, TrackedPath
 from modules.control.reverse import ReversingController
@@ -184,9 +184,8 @@ class Control(Module):
             self._failsafe(reason)
             self._publish(self.controller.brake(reason, Mode.FAILSAFE, self.dt_s))
             return
-        pose = Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps)
-        pose = pose.ahead((state_reading.age_ns or 0) / 1e9)  # where the vehicle is now, not when measured
-        out = self.controller.drive(pose, self.dt_s)
+        motion = Motion.of(state, (state_reading.age_ns or 0) / 1e9)  # where the vehicle is now, not when measured
+        out = self.controller.drive(motion, self.dt_s)
         # Being far off the path is a fail-safe too: the path no longer describes where we are.
         self._failsafe(out.stop_reason if out.mode is Mode.OFF_PATH else None)
         self._watch_edge(out)

@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 
 from brain.vehicle import VehicleGeometry
-from modules.control.controller import ControllerSettings, Mode, Output, Pose, VehicleController, require_finite
+from modules.control.controller import ControllerSettings, Mode, Motion, Output, VehicleController, require_finite
 from modules.control.path_tracking import Projection, TrackedPath, wrap_angle
 
 
@@ -68,25 +68,26 @@ class ReversingController(VehicleController):
         """Braking keeps the gear: changing it is for a standstill and a path that asks."""
         return super().brake(reason, mode, dt_s)._replace(reverse=self.reverse_gear)
 
-    def drive(self, pose: Pose, dt_s: float) -> Output:
+    def drive(self, motion: Motion, dt_s: float) -> Output:
         if self.reverse != self.reverse_gear:
-            speed = abs(pose.speed_mps)
+            speed = abs(motion.speed_mps)
             if speed >= self.reverse_settings.gear_change_speed_mps:
                 self._idle_s += dt_s
                 self._last_speed_mps = speed
                 return self._hold(speed, "stopping to change gear", Mode.HOLD)._replace(reverse=self.reverse_gear)
             self.reverse_gear = self.reverse
         if not self.reverse_gear:
-            return super().drive(pose, dt_s)
-        return self._drive_backwards(pose, dt_s)
+            return super().drive(motion, dt_s)
+        return self._drive_backwards(motion, dt_s)
 
-    def _drive_backwards(self, pose: Pose, dt_s: float) -> Output:
+    def _drive_backwards(self, motion: Motion, dt_s: float) -> Output:
         if not dt_s > 0.0:
             raise ValueError(f"dt_s must be positive, got {dt_s!r}")
         if self.tracker.path is None:
             raise RuntimeError("drive() before set_path()")
         s, r = self.settings, self.reverse_settings
-        speed = max(0.0, -pose.speed_mps)  # backwards, as a magnitude
+        pose = motion.pose
+        speed = max(0.0, -motion.speed_mps)  # backwards, as a magnitude
         self._last_speed_mps = speed
         travelled = speed * (dt_s + self._idle_s) + 1.0
         self._idle_s = 0.0

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from modules.control.controller import ControllerSettings, Mode, Pose, VehicleController
+from modules.control.controller import ControllerSettings, Mode, Motion, VehicleController
 from modules.control.corridor_guard import CorridorGuard
 from modules.control.path_tracking import TrackedPath
 from modules.sim.vehicle import VehicleParams, VehicleState, step
@@ -76,13 +76,13 @@ def drive(
     s_path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(east), np.diff(north)))])
     times, errors, speeds, yaws, steering, modes = [], [], [], [], [], []
     hint = 0
-    poses: deque[Pose] = deque()
+    seen: deque[Motion] = deque()
     steps = round(duration_s / SIM_DT_S)
     for k in range(steps):
         if k % CONTROL_EVERY == 0:
-            poses.append(Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps))
-            pose = poses.popleft() if len(poses) > delay_steps else poses[0]
-            out = controller.drive(pose, SIM_DT_S * CONTROL_EVERY)
+            seen.append(Motion.of(state))
+            motion = seen.popleft() if len(seen) > delay_steps else seen[0]
+            out = controller.drive(motion, SIM_DT_S * CONTROL_EVERY)
             command = ActuatorCommand(out.throttle, out.brake, out.steering_rad)
             steering.append(out.steering_rad)
             modes.append(out.mode)

@@ -12,7 +12,7 @@ import pytest
 
 from brain.corridor import Corridor
 from brain.vehicle import VehicleGeometry
-from modules.control.controller import ControllerSettings, Mode, Pose, VehicleController
+from modules.control.controller import ControllerSettings, Mode, Motion, VehicleController
 from modules.control.corridor_guard import CorridorGuard, GuardSettings
 from modules.control.limits import DEFAULT_MAX_STEERING_RAD, DEFAULT_WHEELBASE_M
 from modules.control.path_tracking import TrackedPath
@@ -155,8 +155,7 @@ def drive_out(angle_rad: float, speed_mps: float, guarded: bool) -> tuple[float,
     least, braked_at_mps, reason = math.inf, math.nan, ""
     for k in range(round(40.0 / SIM_DT_S)):
         if k % 2 == 0:
-            pose = Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps)
-            out = controller.drive(pose, 2 * SIM_DT_S)
+            out = controller.drive(Motion.of(state), 2 * SIM_DT_S)
             command = ActuatorCommand(out.throttle, out.brake, out.steering_rad)
             reason = out.stop_reason
             if out.mode is Mode.CORRIDOR and math.isnan(braked_at_mps):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from modules.control.controller import Mode, Output, Pose, VehicleController
+from brain.pose import Pose
+from modules.control.controller import Mode, Motion, Output, VehicleController
 from modules.control.path_tracking import TrackedPath
 from modules.control.reverse import ReversingController
 from modules.sim.vehicle import VehicleParams, VehicleState, step
@@ -35,8 +36,7 @@ def back_up(
     hint = 0
     for k in range(round(seconds / SIM_DT_S)):
         if k % CONTROL_EVERY == 0:
-            pose = Pose(state.east_m, state.north_m, state.yaw_rad, state.speed_mps, state.yaw_rate_radps)
-            out = controller.drive(pose, SIM_DT_S * CONTROL_EVERY)
+            out = controller.drive(Motion.of(state), SIM_DT_S * CONTROL_EVERY)
             outs.append(out)
             next_command = ActuatorCommand(out.throttle, out.brake, out.steering_rad, out.stop_reason, out.reverse)
         step(state, command, SIM_DT_S, PARAMS)
@@ -98,12 +98,12 @@ def test_it_brakes_to_a_standstill_before_it_changes_gear() -> None:
 def test_a_forward_path_after_backing_up_changes_back_at_a_standstill() -> None:
     controller = ReversingController()
     controller.set_path(reverse_path(-np.arange(0.0, 4.01), np.zeros(5), 1.0), reverse=True)
-    assert controller.drive(Pose(0.0, 0.0, 0.0, 0.0), 0.02).reverse
+    assert controller.drive(Motion(Pose(0.0, 0.0, 0.0), 0.0), 0.02).reverse
     east = np.arange(0.0, 20.0)
     controller.set_path(TrackedPath(east, np.zeros_like(east), np.full_like(east, 3.0)))
-    rolling = controller.drive(Pose(0.0, 0.0, 0.0, -0.5), 0.02)
+    rolling = controller.drive(Motion(Pose(0.0, 0.0, 0.0), -0.5), 0.02)
     assert rolling.reverse and (rolling.throttle, rolling.brake) == (0.0, 1.0)
-    standing = controller.drive(Pose(0.0, 0.0, 0.0, -0.01), 0.02)
+    standing = controller.drive(Motion(Pose(0.0, 0.0, 0.0), -0.01), 0.02)
     assert not standing.reverse and standing.throttle > 0.0
     assert controller.brake("pause", Mode.PAUSE, 0.02).reverse is False
 
@@ -115,5 +115,5 @@ def test_forward_paths_are_driven_exactly_as_the_forward_controller_drives_them(
     forward.set_path(path)
     reversing.set_path(path)
     for k in range(200):
-        pose = Pose(0.1 * k, 0.3 * math.sin(k / 9), 0.1 * math.cos(k / 7), 0.02 * k, 0.01)
-        assert reversing.drive(pose, 0.02) == forward.drive(pose, 0.02)
+        motion = Motion(Pose(0.1 * k, 0.3 * math.sin(k / 9), 0.1 * math.cos(k / 7)), 0.02 * k, 0.01)
+        assert reversing.drive(motion, 0.02) == forward.drive(motion, 0.02)
