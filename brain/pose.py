@@ -1,8 +1,8 @@
 """The vehicle's pose: where its rear axle centre is in ENU, and its heading.
 
 One type for every part of the vehicle side that places things with a pose (fusion, control,
-the simulated sensors' scans); ``PoseLike`` is what a function needs when any object with the three
-fields will do (``protocol.messages.VehicleState`` fits).
+Hybrid A*'s start and goals, the simulated sensors' scans); ``PoseLike`` is what a function needs
+when any object with the three fields will do (``protocol.messages.VehicleState`` fits).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 
-Pose = tuple[float, float, float]  # east, north, heading
+from brain.pose import Pose
 
 _DUBINS_WORDS = ("LSL", "RSR", "LSR", "RSL", "RLR", "LRL")
 

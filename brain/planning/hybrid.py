@@ -50,8 +50,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from brain.grid import GridWindow
-from brain.planning.dubins import Pose, dubins_points
+from brain.planning.dubins import dubins_points
 from brain.planning.swing import FrontSwing, curvature_at
+from brain.pose import Pose
 
 FloatArray = NDArray[np.float64]
 
@@ -309,7 +310,7 @@ class _Target:
         (ae, an), (be, bn) = self.a, self.b
         de, dn = be - ae, bn - an
         t = max(0.0, min(1.0, ((east - ae) * de + (north - an) * dn) / max(de * de + dn * dn, 1e-12)))
-        return [(ae + t * de, an + t * dn, heading), ((ae + be) / 2.0, (an + bn) / 2.0, heading)]
+        return [Pose(ae + t * de, an + t * dn, heading), Pose((ae + be) / 2.0, (an + bn) / 2.0, heading)]
 
 
 def _segment_distance(east: FloatArray, north: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
@@ -572,9 +573,10 @@ class _Search:
 
     def analytic(self, node: int) -> list[tuple[float, float]] | None:
         """Chord points of a clear Dubins curve from the node to a goal pose, or None."""
-        pose = (self.east[node], self.north[node], self.start[2] + self.heading[node] * self.settings.heading_step_rad)
-        for goal in self.target.poses(pose[0], pose[1], self.goal_heading):
-            if self.grid.clear(goal[0], goal[1]):
+        heading = self.start.yaw_rad + self.heading[node] * self.settings.heading_step_rad
+        pose = Pose(self.east[node], self.north[node], heading)
+        for goal in self.target.poses(pose.east_m, pose.north_m, self.goal_heading):
+            if self.grid.clear(goal.east_m, goal.north_m):
                 tail = self._clear_curve(node, dubins_points(pose, goal, self.radius, _CHORD_M))
                 if tail:
                     return tail

@@ -55,7 +55,7 @@ from brain.planning.pursuit import pursue
 from brain.planning.search import Lattice, SearchResult, search
 from brain.planning.smoothing import FreeCells, smooth
 from brain.planning.speed import arc_length, clearance_cap, curvature, reachable, steering_rate_cap, travel_time_s
-from brain.pose import PoseLike
+from brain.pose import Pose, PoseLike
 from protocol.messages import Path, PathPoint
 
 FloatArray = NDArray[np.float64]
@@ -563,7 +563,7 @@ class _Cycle:
             gate.spacing_m,
             gate.swing,
         )
-        pose = (self.east, self.north, self.yaw)
+        pose = Pose(self.east, self.north, self.yaw)
         result = hybrid_search(terrain, self.cfg.hybrid, pose, space.goal_a, space.goal_b, space.goal_heading)
         points, reached = self.nose_clear_end(result.points, result.reached_goal)
         if len(points) < 2 or not gate.check(points).ok:

@@ -18,6 +18,7 @@ from brain.planning.checks import PathGate
 from brain.planning.dubins import dubins_points
 from brain.planning.hazards import HazardField
 from brain.planning.hybrid import HybridResult, Terrain, hybrid_search
+from brain.pose import Pose
 from tests.brain.planning.scenes import (
     Map,
     body_distance,
@@ -75,7 +76,7 @@ def terrain_for(gate: PathGate) -> Terrain:
     )
 
 
-def search_east(grid: Map, start: tuple[float, float, float], goal_east: float, **changes: object) -> HybridResult:
+def search_east(grid: Map, start: Pose, goal_east: float, **changes: object) -> HybridResult:
     """A search on the straight course to its cross-section at ``goal_east``."""
     half = COURSE.corridor.half_width_m[0]
     settings_ = dataclasses.replace(CONFIG, **changes).hybrid if changes else CONFIG.hybrid
@@ -91,7 +92,7 @@ def turn_per_metre(points: np.ndarray) -> np.ndarray:
     return turn / ((length[1:] + length[:-1]) / 2.0)
 
 
-def assert_drivable(points: np.ndarray, start: tuple[float, float, float]) -> None:
+def assert_drivable(points: np.ndarray, start: Pose) -> None:
     """From the vehicle's pose along its heading, and never tighter than its turning radius."""
     assert points[0] == pytest.approx(start[:2])
     first = math.atan2(points[1, 1] - points[0, 1], points[1, 0] - points[0, 0])
@@ -105,7 +106,7 @@ def test_a_gap_of_2_2_m_beside_the_vehicle_is_threaded() -> None:
     the vehicle: the 1.2 m vehicle with 0.15 m margins each side has 0.6 m of play, less the
     gate's sampling slack. The path swerves, lines up and goes through the middle."""
     grid = Map.around(30.0, 0.0, 60.0, 30.0).box(25.0, -15.0, 26.0, 1.95).box(25.0, 4.05, 26.0, 15.0)
-    start = (8.0, 0.0, 0.0)
+    start = Pose(8.0, 0.0, 0.0)
     result = search_east(grid, start, 50.0)
     points = result.points
     assert result.reached_goal and points[-1, 0] == pytest.approx(50.0, abs=0.5)
@@ -120,7 +121,7 @@ def test_a_gap_on_the_far_side_of_the_corridor_is_reached_by_a_drivable_path() -
     """The vehicle near the right edge, heading along the course; a wall 14 m ahead leaves a gap
     only at the left edge. The path crosses the corridor in turns the vehicle can make."""
     grid = Map.around(30.0, 0.0, 60.0, 30.0).box(22.0, -15.0, 23.0, 4.0)
-    start = (8.0, -6.5, 0.0)
+    start = Pose(8.0, -6.5, 0.0)
     result = search_east(grid, start, 50.0)
     points = result.points
     assert result.reached_goal
@@ -135,7 +136,7 @@ def test_a_blocked_corridor_ends_short_of_the_wall_without_flooding() -> None:
     """A wall across the whole corridor: the labelling shows the goal unreachable, so the
     search drives to the cells nearest it, in front of the wall, and says it did not get there."""
     grid = Map.around(30.0, 0.0, 60.0, 30.0).box(30.0, -15.0, 31.0, 15.0)
-    start = (8.0, 1.0, 0.2)
+    start = Pose(8.0, 1.0, 0.2)
     result = search_east(grid, start, 50.0)
     points = result.points
     assert not result.reached_goal
@@ -147,7 +148,7 @@ def test_a_blocked_corridor_ends_short_of_the_wall_without_flooding() -> None:
 
 def test_a_search_out_of_expansions_returns_its_best_way_towards_the_goal() -> None:
     grid = Map.around(30.0, 0.0, 60.0, 30.0).box(22.0, -15.0, 23.0, 4.0)
-    start = (8.0, -6.5, 0.0)
+    start = Pose(8.0, -6.5, 0.0)
     result = search_east(grid, start, 50.0, hybrid_max_expansions=15, hybrid_analytic_every=1000)
     assert not result.reached_goal and result.expansions == 15
     assert len(result.points) >= 2 and result.points[-1, 1] > start[1]  # on its way to the gap
@@ -156,18 +157,16 @@ def test_a_search_out_of_expansions_returns_its_best_way_towards_the_goal() -> N
 
 def test_a_start_too_close_to_a_hazard_has_no_path() -> None:
     grid = Map.around(30.0, 0.0, 60.0, 30.0).disc(8.5, 0.3, 0.3)
-    result = search_east(grid, (8.0, 0.0, 0.0), 50.0)
+    result = search_east(grid, Pose(8.0, 0.0, 0.0), 50.0)
     assert len(result.points) == 0 and not result.reached_goal
 
 
 @given(
-    start=st.tuples(st.floats(-10.0, 10.0), st.floats(-10.0, 10.0), st.floats(-math.pi, math.pi)),
-    goal=st.tuples(st.floats(-10.0, 10.0), st.floats(-10.0, 10.0), st.floats(-math.pi, math.pi)),
+    start=st.builds(Pose, st.floats(-10.0, 10.0), st.floats(-10.0, 10.0), st.floats(-math.pi, math.pi)),
+    goal=st.builds(Pose, st.floats(-10.0, 10.0), st.floats(-10.0, 10.0), st.floats(-math.pi, math.pi)),
 )
 @settings(max_examples=200, deadline=None, derandomize=True, database=None)
-def test_dubins_curves_end_at_the_goal_pose_in_turns_of_the_radius(
-    start: tuple[float, float, float], goal: tuple[float, float, float]
-) -> None:
+def test_dubins_curves_end_at_the_goal_pose_in_turns_of_the_radius(start: Pose, goal: Pose) -> None:
     points = np.array(list(dubins_points(start, goal, RADIUS_M, 0.5)))
     assert points[0] == pytest.approx(start[:2]) and points[-1] == pytest.approx(goal[:2], abs=1e-6)
     if len(points) < 2:
@@ -181,7 +180,7 @@ def test_dubins_curves_end_at_the_goal_pose_in_turns_of_the_radius(
 
 
 @st.composite
-def fields(draw: st.DrawFn) -> tuple[Course, Map, tuple[float, float, float], np.ndarray, np.ndarray, float]:
+def fields(draw: st.DrawFn) -> tuple[Course, Map, Pose, np.ndarray, np.ndarray, float]:
     """Two legs of 35 m (the second turned up to 60 degrees) 4-10 m half width, up to 20 discs
     and boxes in and around it, the vehicle near the start and the goal across the second leg."""
     half_width = draw(st.floats(4.0, 10.0))
@@ -191,7 +190,7 @@ def fields(draw: st.DrawFn) -> tuple[Course, Map, tuple[float, float, float], np
     course = course_through([(0.0, 0.0), tuple(corner), tuple(end)], half_width_m=half_width)
     grid = Map(GridWindow.centred(float(end[0] + 5.0) / 2.0, float(end[1]) / 2.0, 70.0, 70.0, 0.25))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    start = (3.0, draw(st.floats(-0.5, 0.5)) * (half_width - 1.5), draw(st.floats(-0.5, 0.5)))
+    start = Pose(3.0, draw(st.floats(-0.5, 0.5)) * (half_width - 1.5), draw(st.floats(-0.5, 0.5)))
     for _ in range(draw(st.integers(0, 20))):
         leg = rng.random() < 0.5
         along, across = rng.uniform(8.0, 33.0), rng.uniform(-half_width, half_width)
@@ -212,7 +211,7 @@ def fields(draw: st.DrawFn) -> tuple[Course, Map, tuple[float, float, float], np
 @EXAMPLES
 @given(scene=fields())
 def test_every_path_stays_in_the_corridor_clear_of_hazards_and_drivable(
-    scene: tuple[Course, Map, tuple[float, float, float], np.ndarray, np.ndarray, float],
+    scene: tuple[Course, Map, Pose, np.ndarray, np.ndarray, float],
 ) -> None:
     course, grid, start, goal_a, goal_b, heading = scene
     gate = gate_for(grid, course)
