@@ -132,7 +132,9 @@ class PlannerConfig:
     faster_min_saving_s: float = setting(
         0.3, "a candidate replaces the kept path if it drives the horizon this much sooner"
     )
-    faster_retry_m: float = setting(3.0, "...and, with none found, is looked for again this much further on")
+    faster_retry_m: float = setting(
+        3.0, "...and, with none found, is looked for again this much further on; so is a search that stops short"
+    )
 
     def __post_init__(self) -> None:
         if self.search_method not in SEARCH_METHODS:

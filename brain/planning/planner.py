@@ -147,7 +147,7 @@ class Planner:
         self._current: _Current | None = None
         self._station: float | None = None
         self._published: FloatArray | None = None  # the last path's points and speeds (N x 3)
-        self._faster_tried: tuple[int, float] | None = None  # kept path, station to look for a faster one again
+        self._look_again_at: tuple[int, float] | None = None  # kept path, station to look for a better one again
 
     @classmethod
     def for_course(cls, course: Course, config: PlannerConfig | None = None, first_path_id: int = 1) -> Planner:
@@ -162,7 +162,7 @@ class Planner:
         self._current = None
         self._station = None
         self._published = None
-        self._faster_tried = None
+        self._look_again_at = None
 
     def plan(
         self,
@@ -339,8 +339,10 @@ class _Cycle:
             )
         kept = self.kept_search_path()
         if kept is not None and current is not None:
-            reached = current.reached_goal
-            return self.publish_searched(current.path_id, kept, reached, **counts)
+            further = None if current.reached_goal else self.search_further(kept, s_end, counts)
+            if further is not None:
+                return further
+            return self.publish_searched(current.path_id, kept, current.reached_goal, **counts)
         found = self.search_path(s_end)
         if found is None:
             return self.stop(**counts)
@@ -377,7 +379,7 @@ class _Cycle:
         vehicle is ``faster_retry_m`` further on: the search costs a re-plan each time."""
         cfg, planner = self.cfg, self.planner
         current = planner._current
-        tried = planner._faster_tried
+        tried = planner._look_again_at
         if current is not None and tried is not None and tried[0] == current.path_id and self.s0 < tried[1]:
             return None
         near = self.near_cap(points)
@@ -394,12 +396,45 @@ class _Cycle:
             > self.travel_time(points, s) - cfg.faster_min_saving_s
         ):
             if current is not None:
-                planner._faster_tried = (current.path_id, self.s0 + cfg.faster_retry_m)
+                planner._look_again_at = (current.path_id, self.s0 + cfg.faster_retry_m)
             return None
         path_id = planner._new_id()
         planner._current = _Current(path_id, profile=choice.profile)
         counts: Counts = {"candidates": choice.generated, "candidates_clear": choice.clear, "gated": choice.gated}
         return self.publish(path_id, PlanMode.REPLAN, choice.points, choice.stations_m, slow=False, **counts)
+
+    def search_further(self, kept: FloatArray, s_end: float, counts: Counts) -> PlanResult | None:
+        """A kept search that stops short is searched again each time the vehicle is
+        ``faster_retry_m`` further on. The map ahead firms up and the window moves on as it
+        drives, and a search within its expansion budget may get further from a pose nearer the
+        gap: a new one replaces the kept one if it gets through, or stops at least
+        ``faster_retry_m`` further along the course. Otherwise the vehicle creeps to the kept
+        stop and stands before the hazard with no room left to turn past it. Progress decides,
+        so searches that stop as short as before change nothing (no flapping)."""
+        cfg, planner = self.cfg, self.planner
+        current, tried = planner._current, planner._look_again_at
+        if current is None:
+            return None
+        if tried is None or tried[0] != current.path_id:
+            planner._look_again_at = (current.path_id, self.s0 + cfg.faster_retry_m)
+            return None
+        if self.s0 < tried[1]:
+            return None
+        planner._look_again_at = (current.path_id, self.s0 + cfg.faster_retry_m)
+        found = self.search_path(s_end)
+        if found is None:
+            return None
+        points, reached, expansions = found
+        if not reached and self.station_of(points[-1]) < self.station_of(kept[-1]) + cfg.faster_retry_m:
+            return None
+        path_id = planner._new_id()
+        planner._current = _Current(path_id, polyline=points, reached_goal=reached)
+        return self.publish_searched(path_id, points, reached, expansions=expansions, **counts)
+
+    def station_of(self, point: FloatArray) -> float:
+        """The course station of a point between the vehicle and the horizon."""
+        s, _d = self.frame.locate(point[0], point[1], self.s0, self.cfg.station_behind_m, self.cfg.horizon_m)
+        return float(s)
 
     def default_profile(self) -> LateralProfile:
         """From the vehicle's own lateral state (its offset, and its heading relative to the

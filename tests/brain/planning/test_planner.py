@@ -284,6 +284,48 @@ def test_a_blocked_corridor_stops_short_with_the_nose_clear(method: str) -> None
     assert plan(p, grid, Pose(near_end, 0.0, 0.0, 1.0)).path.path_id != result.path.path_id
 
 
+def test_a_search_that_stops_short_gives_way_to_one_that_gets_through_once_the_vehicle_moves_on() -> None:
+    """Walls 10 m apart, a gap in the first and none yet in the second: the search stops short.
+    Then a gap in the second shows (nearer views place a hazard's edges), a zigzag no swerve
+    makes. The kept search is not dropped at once (one search followed decisively), but searched
+    again ``faster_retry_m`` further on, and the search that gets through replaces it: driven at
+    the search speed, not crept along to a stop before the wall with no room left to turn."""
+    p = planner()
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, 3.5, 142.0, 7.5).box(150.0, -15.0, 151.0, 15.0)
+    short = plan(p, grid, Pose(110.0, 0.0, 0.0, 9.0))
+    assert short.mode is PlanMode.SEARCH and not short.reached_goal
+    grid.clear_box(149.0, -7.5, 152.0, -3.5)
+    for east in (111.0, 111.0 + CONFIG.faster_retry_m - 0.5):  # the first kept cycle starts the count
+        kept = plan(p, grid, Pose(east, 0.0, 0.0, 1.0))
+        assert kept.path.path_id == short.path.path_id and not kept.reached_goal
+    through = plan(p, grid, Pose(111.0 + CONFIG.faster_retry_m + 0.5, 0.0, 0.0, 1.0))
+    assert through.mode is PlanMode.SEARCH and through.reached_goal and not through.slow_mode
+    assert through.path.path_id != short.path.path_id
+    points = path_points(through.path)
+    assert_safe(points, grid)
+    assert points[-1, 0] > 152.0 and points[:, 2].max() > 1.0
+
+
+def test_a_search_that_stops_short_gives_way_to_one_that_gets_further() -> None:
+    """As above, with a third wall, closed, 20 m on: the new search stops short too, but past the
+    second wall, which is progress; the vehicle follows it (still slowly, to its stop). Searches
+    that get no further keep it, so the path changes only as the way ahead opens."""
+    p = planner()
+    grid = field().box(140.0, -15.0, 141.0, 15.0).clear_box(139.0, 3.5, 142.0, 7.5).box(150.0, -15.0, 151.0, 15.0)
+    grid.box(170.0, -15.0, 171.0, 15.0)
+    short = plan(p, grid, Pose(110.0, 0.0, 0.0, 9.0))
+    assert not short.reached_goal and path_points(short.path)[-1, 0] < 150.0
+    grid.clear_box(149.0, -7.5, 152.0, -3.5)
+    plan(p, grid, Pose(111.0, 0.0, 0.0, 1.0))
+    further = plan(p, grid, Pose(111.0 + CONFIG.faster_retry_m + 0.5, 0.0, 0.0, 1.0))
+    assert further.path.path_id != short.path.path_id and not further.reached_goal and further.slow_mode
+    points = path_points(further.path)
+    assert_safe(points, grid)
+    assert 152.0 < points[-1, 0] < 170.0
+    for east in (111.0 + 2 * CONFIG.faster_retry_m + 1.0, 111.0 + 3 * CONFIG.faster_retry_m + 1.5):
+        assert plan(p, grid, Pose(east, 0.0, 0.0, 1.0)).path.path_id == further.path.path_id
+
+
 def test_a_blockage_far_ahead_is_driven_towards_at_speed_until_it_is_near() -> None:
     """A wall across the corridor 70 m ahead (as far hazards often look before a lane through them
     is mapped): the vehicle drives on at speed towards a stop short of it, not in slow mode; once
