@@ -33,6 +33,10 @@ class BackUpSettings:
     length_m: float = 4.0
     speed_mps: float = 1.0
     clearance_m: float = 0.9  # rear axle to the corridor's edge: the rear corners (0.72 m) plus a margin
+    # Along the trail, what the vehicle kept driving it forwards (the planner's corridor clearance):
+    # backing over the same track sweeps the same ground. A vehicle that crept along a corridor's
+    # edge to a dead end must be able to back out the way it came.
+    trail_clearance_m: float = 0.7
 
 
 @dataclass(frozen=True)
@@ -73,19 +77,28 @@ class Trail:
 
 
 Test = Callable[[FloatArray, FloatArray], NDArray[np.bool_]]
+Distance = Callable[[FloatArray, FloatArray], FloatArray]
 
 
 def back_up(
-    trail: Trail, east_m: float, north_m: float, yaw_rad: float, inside: Test, free: Test, settings: BackUpSettings
+    trail: Trail,
+    east_m: float,
+    north_m: float,
+    yaw_rad: float,
+    to_edge: Distance,
+    free: Test,
+    settings: BackUpSettings,
 ) -> BackUp | None:
     """The way back from the pose, or None if there is less than MIN_BACK_UP_M of it.
-    ``inside(e, n)``: the points keep the clearance to the corridor's edge; ``free(e, n)``: the
-    map shows no hazard around them (asked only beyond the trail)."""
+    ``to_edge(e, n)``: the points' distance inside the corridor's edge, which must be the trail
+    clearance on the trail and the clearance beyond it; ``free(e, n)``: the map shows no hazard
+    around them (asked only beyond the trail)."""
     points = [(east_m, north_m)]
     length = 0.0
     used = 0
     trail_xy = np.array(list(reversed(trail.points)), dtype=float).reshape(-1, 2)
-    for (east, north), ok in zip(trail_xy, inside(trail_xy[:, 0], trail_xy[:, 1]), strict=True):
+    on_trail = to_edge(trail_xy[:, 0], trail_xy[:, 1]) >= settings.trail_clearance_m
+    for (east, north), ok in zip(trail_xy, on_trail, strict=True):
         if length >= settings.length_m or not ok:
             break
         used += 1
@@ -95,6 +108,10 @@ def back_up(
         points.append((float(east), float(north)))
         length += step
     if length < settings.length_m and used == len(trail_xy):
+
+        def inside(east: FloatArray, north: FloatArray) -> NDArray[np.bool_]:
+            return to_edge(east, north) >= settings.clearance_m
+
         length += _straight_on(points, yaw_rad, settings.length_m - length, trail.spacing_m, inside, free)
     if length < MIN_BACK_UP_M:
         return None

@@ -165,7 +165,9 @@ class Brain(Module):
         finish_m = course.interpolate().length_m - FINISH_M
         self.stall = StallWatch(finish_m, config.blocked_after_s, config.stall_after_s)
         self.corridor = course.corridor
-        self.back_up_settings = BackUpSettings(config.back_up_m, config.back_up_speed_mps)
+        self.back_up_settings = BackUpSettings(
+            config.back_up_m, config.back_up_speed_mps, trail_clearance_m=config.planner.corridor_clearance_m
+        )
         # Only to tell an operator's hold from a stall. The operator's orders, not control's 50 Hz
         # commands: those are signed, and verifying each would cost more than the stall watch.
         self.held_by_operator = False
@@ -317,8 +319,8 @@ class Brain(Module):
         caution = self.planner.config.caution_probability
         offsets = np.arange(-settings.clearance_m, settings.clearance_m + 1e-9, window.resolution_m)
 
-        def inside(east: FloatArray, north: FloatArray) -> np.ndarray:
-            return np.asarray(self.corridor.distance_to_edge(east, north)) >= settings.clearance_m
+        def to_edge(east: FloatArray, north: FloatArray) -> FloatArray:
+            return np.asarray(self.corridor.distance_to_edge(east, north), dtype=float)
 
         def free(east: FloatArray, north: FloatArray) -> np.ndarray:
             # Every known cell in a square of the clearance around each point is below caution.
@@ -331,7 +333,7 @@ class Brain(Module):
             risky[known] = hazard[rows[known], cols[known]] >= caution
             return ~risky.any(axis=(1, 2))
 
-        return back_up(self.trail, state.east_m, state.north_m, state.yaw_rad, inside, free, settings)
+        return back_up(self.trail, state.east_m, state.north_m, state.yaw_rad, to_edge, free, settings)
 
     def start_backing(self, way: BackUp, now_ns: int) -> None:
         speed = self.back_up_settings.speed_mps
