@@ -54,7 +54,7 @@ class Cluster:
 @dataclass(frozen=True)
 class Footprint:
     """A cluster's estimated footprint in the sensor frame: an oriented rectangle (a cylinder is
-    its bounding square, ``yaw_rad`` 0)."""
+    its bounding square, turned to face the sensor)."""
 
     x_m: float
     y_m: float
@@ -160,7 +160,7 @@ def _compact(cluster: Cluster, step_rad: float) -> Footprint:
     # Each silhouette edge lies between the outermost return and the next ray: half a spacing out.
     size = float(lateral.max() - lateral.min() + cluster.ranges_m.mean() * step_rad)
     centre = (along.min() + size / 2) * u + (lateral.max() + lateral.min()) / 2 * v
-    return Footprint(float(centre[0]), float(centre[1]), size, size, 0.0)
+    return Footprint(float(centre[0]), float(centre[1]), size, size, middle)  # facing the lidar
 
 
 def _circle(cluster: Cluster) -> _Fit | None:
@@ -187,7 +187,10 @@ def _circle(cluster: Cluster) -> _Fit | None:
     chord = math.dist(points[0], points[-1])
     if not 0 < radius <= chord or math.hypot(*centre) <= cluster.ranges_m.min():
         return None
-    footprint = Footprint(float(centre[0]), float(centre[1]), 2 * radius, 2 * radius, 0.0)
+    # Its bounding square turned to face the lidar: a square at 45 deg to the line of sight
+    # reaches r (sqrt 2 - 1) further beside it, where a lane past it is measured.
+    facing = math.atan2(float(centre[1]), float(centre[0]))
+    footprint = Footprint(float(centre[0]), float(centre[1]), 2 * radius, 2 * radius, facing)
     return _Fit(footprint, math.sqrt(float(residual @ residual) / n))
 
 

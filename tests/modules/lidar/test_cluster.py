@@ -71,6 +71,37 @@ def test_cylinder_centres_are_within_0_2_m_in_range() -> None:
     assert max(errors) <= 0.2
 
 
+def test_a_cylinder_reaches_no_further_beside_the_line_of_sight_than_its_radius() -> None:
+    """What closes a lane past a cylinder is how far its footprint reaches across the line of
+    sight: the reported square faces the lidar, so its corners do not add r (sqrt 2 - 1) there
+    (0.23 m on a shrub of 0.57 m, at 45 deg)."""
+    rng = np.random.default_rng(20261205)
+    excess = []
+    for _ in range(CASES):
+        radius = float(rng.uniform(0.25, 1.5))
+        pose, mount, centre = place(rng, radius)
+        obstacle = WorldObstacle("c", Shape.CYLINDER, *centre, 2.0, radius_m=radius)
+        returns, found = observe(obstacle, pose, mount, rng)
+        if returns < 3:
+            continue
+        o = found[0]
+        sight = math.atan2(o.y_m - mount.y_m, o.x_m - mount.x_m)  # from the lidar, near enough
+        corners = [
+            (
+                su * o.length_m / 2 * math.cos(o.yaw_rad) - sv * o.width_m / 2 * math.sin(o.yaw_rad),
+                su * o.length_m / 2 * math.sin(o.yaw_rad) + sv * o.width_m / 2 * math.cos(o.yaw_rad),
+            )
+            for su in (-1, 1)
+            for sv in (-1, 1)
+        ]
+        beside = max(abs(-math.sin(sight) * e + math.cos(sight) * n) for e, n in corners)
+        truth = in_vehicle_frame(pose, obstacle.east_m, obstacle.north_m)
+        offset = abs(-math.sin(sight) * (o.x_m - truth[0]) + math.cos(sight) * (o.y_m - truth[1]))
+        excess.append(beside + offset - radius)
+    assert len(excess) > 0.95 * CASES
+    assert np.percentile(excess, 95) <= 0.1
+
+
 def test_small_box_centres_are_within_0_2_m_plus_the_unobservable_part() -> None:
     rng = np.random.default_rng(20240602)
     resolved, few = [], []  # error beyond the unobservable part, by number of returns
