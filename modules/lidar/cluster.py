@@ -53,14 +53,15 @@ class Cluster:
 
 @dataclass(frozen=True)
 class Footprint:
-    """A cluster's estimated footprint in the sensor frame: an oriented rectangle (a cylinder is
-    its bounding square, turned to face the sensor)."""
+    """A cluster's estimated footprint in the sensor frame: an oriented rectangle, or for a
+    cylinder (and a compact estimate) a square whose orientation says nothing (``round``)."""
 
     x_m: float
     y_m: float
     length_m: float  # along yaw
     width_m: float  # across yaw
     yaw_rad: float
+    round: bool = False
 
 
 class _Fit(NamedTuple):
@@ -125,7 +126,12 @@ def to_vehicle(footprint: Footprint, cluster: Cluster, scan: Scan, params: Clust
     mount = scan.mount
     centre = mount.to_vehicle(np.array([[footprint.x_m, footprint.y_m]]))[0]
     points = mount.to_vehicle(cluster.points)
-    yaw, length, width = _normalise(footprint.yaw_rad + mount.yaw_rad, footprint.length_m, footprint.width_m)
+    # A round footprint's square is sent square to the vehicle: lanes past it run along the
+    # vehicle's x axis, and a square turned by theta reaches r (cos theta + sin theta) across them
+    # (the two lidars' squares, at their +-15 deg mounts and fused together, reached 0.13 m beyond
+    # a shrub's radius each side; turned to face the lidar close beside one, 0.25 m).
+    turned = 0.0 if footprint.round else footprint.yaw_rad + mount.yaw_rad
+    yaw, length, width = _normalise(turned, footprint.length_m, footprint.width_m)
     return Obstacle(
         x_m=float(centre[0]),
         y_m=float(centre[1]),
@@ -160,7 +166,7 @@ def _compact(cluster: Cluster, step_rad: float) -> Footprint:
     # Each silhouette edge lies between the outermost return and the next ray: half a spacing out.
     size = float(lateral.max() - lateral.min() + cluster.ranges_m.mean() * step_rad)
     centre = (along.min() + size / 2) * u + (lateral.max() + lateral.min()) / 2 * v
-    return Footprint(float(centre[0]), float(centre[1]), size, size, middle)  # facing the lidar
+    return Footprint(float(centre[0]), float(centre[1]), size, size, 0.0, round=True)
 
 
 def _circle(cluster: Cluster) -> _Fit | None:
@@ -187,10 +193,7 @@ def _circle(cluster: Cluster) -> _Fit | None:
     chord = math.dist(points[0], points[-1])
     if not 0 < radius <= chord or math.hypot(*centre) <= cluster.ranges_m.min():
         return None
-    # Its bounding square turned to face the lidar: a square at 45 deg to the line of sight
-    # reaches r (sqrt 2 - 1) further beside it, where a lane past it is measured.
-    facing = math.atan2(float(centre[1]), float(centre[0]))
-    footprint = Footprint(float(centre[0]), float(centre[1]), 2 * radius, 2 * radius, facing)
+    footprint = Footprint(float(centre[0]), float(centre[1]), 2 * radius, 2 * radius, 0.0, round=True)
     return _Fit(footprint, math.sqrt(float(residual @ residual) / n))
 
 

@@ -71,10 +71,11 @@ def test_cylinder_centres_are_within_0_2_m_in_range() -> None:
     assert max(errors) <= 0.2
 
 
-def test_a_cylinder_reaches_no_further_beside_the_line_of_sight_than_its_radius() -> None:
-    """What closes a lane past a cylinder is how far its footprint reaches across the line of
-    sight: the reported square faces the lidar, so its corners do not add r (sqrt 2 - 1) there
-    (0.23 m on a shrub of 0.57 m, at 45 deg)."""
+def test_a_cylinder_reaches_no_further_across_the_vehicle_than_its_radius() -> None:
+    """What closes a lane past a cylinder is how far its footprint reaches across the vehicle's
+    x axis, along which the lane runs: the reported square is square to the vehicle, so its
+    corners do not add r (cos theta + sin theta - 1) there, as one square to a lidar mounted at
+    15 deg did (0.13 m on a shrub of 0.57 m), or one facing a lidar close beside it."""
     rng = np.random.default_rng(20261205)
     excess = []
     for _ in range(CASES):
@@ -85,21 +86,12 @@ def test_a_cylinder_reaches_no_further_beside_the_line_of_sight_than_its_radius(
         if returns < 3:
             continue
         o = found[0]
-        sight = math.atan2(o.y_m - mount.y_m, o.x_m - mount.x_m)  # from the lidar, near enough
-        corners = [
-            (
-                su * o.length_m / 2 * math.cos(o.yaw_rad) - sv * o.width_m / 2 * math.sin(o.yaw_rad),
-                su * o.length_m / 2 * math.sin(o.yaw_rad) + sv * o.width_m / 2 * math.cos(o.yaw_rad),
-            )
-            for su in (-1, 1)
-            for sv in (-1, 1)
-        ]
-        beside = max(abs(-math.sin(sight) * e + math.cos(sight) * n) for e, n in corners)
+        c, s = math.cos(o.yaw_rad), math.sin(o.yaw_rad)
+        across = abs(s) * o.length_m / 2 + abs(c) * o.width_m / 2
         truth = in_vehicle_frame(pose, obstacle.east_m, obstacle.north_m)
-        offset = abs(-math.sin(sight) * (o.x_m - truth[0]) + math.cos(sight) * (o.y_m - truth[1]))
-        excess.append(beside + offset - radius)
+        excess.append(across + abs(o.y_m - truth[1]) - radius)
     assert len(excess) > 0.95 * CASES
-    assert np.percentile(excess, 95) <= 0.1
+    assert np.percentile(excess, 95) <= 0.06
 
 
 def test_small_box_centres_are_within_0_2_m_plus_the_unobservable_part() -> None:
