@@ -10,6 +10,8 @@ import pytest
 
 from modules.esvs.geometry import RASCAL_RIG
 from modules.esvs.vision import STAGES, process
+from modules.sim.camera.render import StereoRenderer
+from modules.sim.world import Shape, World, WorldObstacle
 from protocol.messages import Frame, Sensor
 from tests.modules.esvs.vision.scenes import Box, Scene, Stripe, nearest_range, rendered
 
@@ -114,3 +116,24 @@ def test_on_the_simulated_cameras_a_rock_and_both_road_edges_are_found() -> None
     for border, y in zip(borders.borders, (3.5, -3.5), strict=True):
         xs = np.linspace(max(border.x_min_m, 12.0), min(border.x_max_m, 36.0), 10)
         assert np.abs(border.c0_m + border.c1 * xs + border.c2_per_m * xs**2 - y).max() < 0.3
+
+
+@pytest.mark.parametrize("turn_deg", [15.0, 30.0])
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_a_box_seen_at_an_angle_is_described_turned_with_it(turn_deg: float, side: float) -> None:
+    # A gate post 12 m ahead, turned against the vehicle as when the vehicle comes out of a bend.
+    # A box square to the vehicle round it reached 0.3-0.5 m past its sides in its own frame.
+    yaw = -side * math.radians(turn_deg)
+    post = WorldObstacle("post", Shape.BOX, 14.0, side * 1.5, 1.1, length_m=1.26, width_m=0.93, yaw_rad=yaw)
+    frame = StereoRenderer(World(obstacles=(post,)), RASCAL_RIG).render((0.0, 0.0, 0.0), np.random.default_rng(5))
+    obstacles, _, _ = process(frame.left, frame.right, RASCAL_RIG)
+    (found,) = obstacles.obstacles
+    assert math.degrees(abs(found.yaw_rad - yaw)) <= 6.0
+    c, s = math.cos(found.yaw_rad), math.sin(found.yaw_rad)
+    corners = [
+        (found.x_m + u * c - v * s, found.y_m + u * s + v * c)
+        for u in (-found.length_m / 2, found.length_m / 2)
+        for v in (-found.width_m / 2, found.width_m / 2)
+    ]
+    across_post = [-(x - post.east_m) * math.sin(yaw) + (y - post.north_m) * math.cos(yaw) for x, y in corners]
+    assert max(abs(a) for a in across_post) <= post.width_m / 2 + 0.3
