@@ -110,17 +110,17 @@ def describe(
 
 
 def _descriptor(points: np.ndarray, columns: np.ndarray, disparities: np.ndarray, params: ClusterParams) -> Obstacle:
-    x_m, y_m, length, width, yaw = _rectangle(_profile(points, columns, params), params.side_tolerance_m)
-    top = float(np.percentile(points[:, 2], 98))
     ranges = np.hypot(points[:, 0], points[:, 1])
+    x_m, y_m, length, width, yaw = _rectangle(_profile(points, ranges, columns, params), params.side_tolerance_m)
+    top = float(np.percentile(points[:, 2], 98))
     median = float(np.median(disparities))
     consistency = float(np.mean(np.abs(disparities - median) <= params.consistency_px))
     count = len(points)
     return Obstacle(
-        x_m=float(x_m),
-        y_m=float(y_m),
-        length_m=float(length),
-        width_m=float(width),
+        x_m=x_m,
+        y_m=y_m,
+        length_m=length,
+        width_m=width,
         height_m=max(top, 0.0),
         yaw_rad=yaw,
         confidence=(1.0 - math.exp(-count / params.confidence_points)) * consistency,
@@ -151,10 +151,10 @@ def _to_nearer_end(coordinates: np.ndarray) -> np.ndarray:
     return np.minimum(coordinates - coordinates.min(axis=0), coordinates.max(axis=0) - coordinates)
 
 
-def _profile(points: np.ndarray, columns: np.ndarray, params: ClusterParams) -> np.ndarray:
-    """(2k, 2) outline of the visible surface: for each of its k column bins, the points at the
-    median range of the bin's points and the bin's outermost bearings (within 2-98 %)."""
-    ranges = np.hypot(points[:, 0], points[:, 1])
+def _profile(points: np.ndarray, ranges: np.ndarray, columns: np.ndarray, params: ClusterParams) -> np.ndarray:
+    """(2k, 2) outline of the visible surface (points with their ``ranges`` from the vehicle origin):
+    for each of its k column bins, the points at the median range of the bin's points and the bin's
+    outermost bearings (within 2-98 %)."""
     bearings = np.arctan2(points[:, 1], points[:, 0])
     low, high = np.percentile(bearings, [2, 98])
     bins = columns // params.column_bin_px
